@@ -71,6 +71,9 @@ class DecodeLimits:
     max_bytes: int = 512 * 1024 * 1024
 
 
+DEFAULT_LIMITS = DecodeLimits()
+
+
 @dataclass(frozen=True)
 class MapMeta:
     """What travels with a map besides its cells."""
@@ -296,7 +299,7 @@ def _unzstd(payload, cap: int) -> np.ndarray:
     return np.frombuffer(out, dtype=np.int8)
 
 
-def decode_map(data, limits: DecodeLimits = DecodeLimits()) -> tuple[OccupancyGrid, MapMeta]:
+def decode_map(data, limits: DecodeLimits = DEFAULT_LIMITS) -> tuple[OccupancyGrid, MapMeta]:
     """The grid and metadata of a complete map message (type 0 or 1)."""
     if len(data) > limits.max_bytes:
         raise WireError(f"message of {len(data)} bytes exceeds the limit of {limits.max_bytes}")
