@@ -17,7 +17,7 @@ import numpy as np
 
 from coopd.grid import OccupancyGrid
 
-from . import codec
+from . import codec, planes
 from .codec import CodecError
 
 MSG_THESIS_MAP = 0
@@ -40,11 +40,11 @@ COOPD_HEADER = struct.Struct("<bBHiBBH3i3id3dQdII")
 COOPD_PREFIX = struct.Struct("<bBH")
 """Bytes every coopd message version starts with: type, format version, header length."""
 
-ENCODINGS = {"raw": 0, "thesis": 1, "thesis-zstd": 2}
+ENCODINGS = {"raw": 0, "thesis": 1, "thesis-zstd": 2, "planes-zstd": 3}
 """Payload encodings of the coopd map message, by name -> id (docs/protocol.md)."""
 ENCODING_NAMES = {v: k for k, v in ENCODINGS.items()}
-DEFAULT_ENCODING = "thesis-zstd"
-ENCODING_PREFERENCE = ("thesis-zstd", "thesis", "raw")
+DEFAULT_ENCODING = "planes-zstd"
+ENCODING_PREFERENCE = ("planes-zstd", "thesis-zstd", "thesis", "raw")
 """Our order of preference when negotiating with a peer; "thesis" is what every coopd reads."""
 ZSTD_LEVEL = 3
 
@@ -122,9 +122,12 @@ def negotiate(peer_encodings) -> str:
     return "thesis"
 
 
-def _encode_payload(cells: np.ndarray, encoding: str) -> bytes:
+def encode_payload(cells: np.ndarray, encoding: str) -> bytes:
+    """The payload of flat int8 cells in a named encoding (no header)."""
     if encoding == "raw":
         return cells.tobytes()
+    if encoding == "planes-zstd":
+        return planes.encode(cells)
     stream = codec.compress(cells)
     if encoding == "thesis":
         return stream.tobytes()
@@ -151,7 +154,7 @@ def encode_map(grid: OccupancyGrid, meta: MapMeta, encoding: str = "default") ->
     _check_int32("size", grid.shape)
     if not (0 <= int(meta.version) < 2**64 and math.isfinite(meta.stamp)):
         raise ValueError(f"map version must be 0..2**64-1 and stamp finite, got {meta}")
-    payload = _encode_payload(grid.flat, encoding)
+    payload = encode_payload(grid.flat, encoding)
     if len(payload) > 2**32 - 1:
         raise ValueError("payload exceeds 4 GiB")
     offset = [int(v) for v in grid.offset]
@@ -258,23 +261,25 @@ def _peek_coopd(data) -> MessageInfo:
                        (ox, oy, oz), version, stamp, crc)
 
 
-def _decode_payload(payload, info: MessageInfo) -> np.ndarray:
-    n = info.cells
+def decode_payload(payload, encoding: str, n: int) -> np.ndarray:
+    """The n flat cells of a payload in a named encoding; WireError if it is malformed."""
     try:
-        if info.encoding == "raw":
+        if encoding == "raw":
             if len(payload) != n:
                 raise WireError(f"raw payload holds {len(payload)} bytes for {n} cells")
             cells = np.frombuffer(payload, dtype=np.int8).copy()
             if n and (cells.min() < codec.CELL_MIN or cells.max() > codec.CELL_MAX):
                 raise WireError("raw payload holds values outside the cell range -2..100")
             return cells
-        if info.encoding == "thesis":
+        if encoding == "thesis":
             return codec.decompress(np.frombuffer(payload, dtype=np.int8), n)
-        if info.encoding == "thesis-zstd":
+        if encoding == "thesis-zstd":
             return codec.decompress(_unzstd(payload, cap=n), n)
-    except CodecError as e:
-        raise WireError(f"{info.encoding} payload: {e}") from e
-    raise WireError(f"unknown encoding {info.encoding}")
+        if encoding == "planes-zstd":
+            return planes.decode(payload, n)
+    except (CodecError, planes.PlanesError) as e:
+        raise WireError(f"{encoding} payload: {e}") from e
+    raise WireError(f"unknown encoding {encoding}")
 
 
 def _unzstd(payload, cap: int) -> np.ndarray:
@@ -313,6 +318,6 @@ def decode_map(data, limits: DecodeLimits = DEFAULT_LIMITS) -> tuple[OccupancyGr
         raise WireError("payload CRC-32 mismatch: the message is corrupted")
     if not 1e-4 <= info.resolution <= 100.0:
         raise WireError(f"resolution {info.resolution} m is outside 1e-4..100 m")
-    cells = _decode_payload(payload, info)
+    cells = decode_payload(payload, info.encoding, info.cells)
     grid = OccupancyGrid(cells.reshape(info.shape), info.resolution, info.offset)
     return grid, MapMeta(info.vehicle_id, info.map_version, info.stamp)

@@ -93,7 +93,7 @@ def test_coopd_header_byte_table():
     assert msg[:92] == expected and msg[92:] == payload
 
 
-@pytest.mark.parametrize("encoding", ["default", "raw", "thesis", "thesis-zstd"])
+@pytest.mark.parametrize("encoding", ["default", "raw", "thesis", "thesis-zstd", "planes-zstd"])
 def test_coopd_round_trip(encoding):
     cells = building_map((60, 50, 20), explored=0.4, seed=3)
     grid = OccupancyGrid(cells, 0.05, (-30, -25, -2))
@@ -165,7 +165,8 @@ def test_zstd_payload_must_declare_a_bounded_size():
         decode_map(bytes(header) + bomb)
 
 
-def test_negotiation_prefers_zstd_and_falls_back_to_thesis():
+def test_negotiation_prefers_planes_and_falls_back_to_thesis():
+    assert negotiate(["raw", "thesis", "thesis-zstd", "planes-zstd"]) == "planes-zstd"
     assert negotiate(["raw", "thesis", "thesis-zstd"]) == "thesis-zstd"
     assert negotiate(["thesis"]) == "thesis"
     assert negotiate(["something-new"]) == "thesis"
@@ -187,7 +188,7 @@ def test_fuzz_random_messages(data):
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.sampled_from(["thesis0", "raw", "thesis", "thesis-zstd"]), st.data())
+@given(st.sampled_from(["thesis0", "raw", "thesis", "thesis-zstd", "planes-zstd"]), st.data())
 def test_fuzz_mutated_messages(kind, data):
     grid = small_grid(offset=(0, 0, 0))
     msg = bytearray(encode_thesis_map(grid, 1) if kind == "thesis0" else encode_map(grid, MapMeta(1), kind))
