@@ -34,5 +34,5 @@ def voxelize(shapes: list[Shape], bounds_min, bounds_max, resolution: float) -> 
         gx, gy, gz = np.meshgrid(*axes, indexing="ij")
         lo = np.stack([gx, gy, gz], axis=-1)
         hit = s.overlaps_cells(lo, lo + resolution)
-        occ[i0[0]:i1[0], i0[1]:i1[1], i0[2]:i1[2]] |= hit
+        occ[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]] |= hit
     return occ, origin

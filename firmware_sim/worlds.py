@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_sim.shapes import Box, Cylinder, Shape, box_from_corners
+from firmware_sim.shapes import Cylinder, Shape, box_from_corners
 from firmware_sim.voxelize import voxelize
 
 WALL_RGBA = (0.85, 0.85, 0.8, 1.0)
@@ -59,7 +59,7 @@ class World:
         idx = np.round((np.array([x, y]) - origin[:2]) / 0.1).astype(int)
         r = int(math.ceil(radius / 0.1))
         z0, z1 = int(round((0.05 - origin[2]) / 0.1)), int(round((2.0 - origin[2]) / 0.1))
-        return not occ[max(0, idx[0] - r): idx[0] + r + 1, max(0, idx[1] - r): idx[1] + r + 1, z0:z1].any()
+        return not occ[max(0, idx[0] - r) : idx[0] + r + 1, max(0, idx[1] - r) : idx[1] + r + 1, z0:z1].any()
 
     def start_poses(self, n: int) -> list[tuple[float, float, float, float]]:
         """Suggest n collision-free start poses (x, y, z, yaw) on the floor, spread along the loop."""
@@ -192,14 +192,22 @@ class _Builder:
     def table(self, x0, y0, x1, y1, height=0.75) -> None:
         """Add a table: a 4 cm top on four legs."""
         self.box("tabletop", (x0, y0, height - 0.04), (x1, y1, height))
-        for lx, ly in ((x0 + 0.05, y0 + 0.05), (x1 - 0.05, y0 + 0.05), (x0 + 0.05, y1 - 0.05),
-                       (x1 - 0.05, y1 - 0.05)):
+        for lx, ly in (
+            (x0 + 0.05, y0 + 0.05),
+            (x1 - 0.05, y0 + 0.05),
+            (x0 + 0.05, y1 - 0.05),
+            (x1 - 0.05, y1 - 0.05),
+        ):
             self.cylinder("tableleg", lx, ly, 0.0, height - 0.04, 0.03)
 
     def rack(self, x0, y0, x1, y1, height, levels) -> None:
         """Add an open pallet rack: corner posts and horizontal boards."""
-        for px, py in ((x0 + 0.05, y0 + 0.05), (x1 - 0.05, y0 + 0.05), (x0 + 0.05, y1 - 0.05),
-                       (x1 - 0.05, y1 - 0.05)):
+        for px, py in (
+            (x0 + 0.05, y0 + 0.05),
+            (x1 - 0.05, y0 + 0.05),
+            (x0 + 0.05, y1 - 0.05),
+            (x1 - 0.05, y1 - 0.05),
+        ):
             self.box("rackpost", (px - 0.05, py - 0.05, 0), (px + 0.05, py + 0.05, height))
         for k in range(levels):
             z = 0.15 + k * (height - 0.2) / max(1, levels - 1) if levels > 1 else 0.15
@@ -235,8 +243,11 @@ def _maze(seed: int, size) -> World:
     stack, tour = [(0, 0)], [(0, 0)]
     while stack:
         cx, cy = stack[-1]
-        nbrs = [(cx + dx, cy + dy) for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1))
-                if 0 <= cx + dx < n and 0 <= cy + dy < n and (cx + dx, cy + dy) not in visited]
+        nbrs = [
+            (cx + dx, cy + dy)
+            for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1))
+            if 0 <= cx + dx < n and 0 <= cy + dy < n and (cx + dx, cy + dy) not in visited
+        ]
         if nbrs:
             nxt = nbrs[int(rng.integers(len(nbrs)))]
             open_edges.add(tuple(sorted(((cx, cy), nxt))))
@@ -255,10 +266,20 @@ def _maze(seed: int, size) -> World:
         for j in range(n):
             if i + 1 < n and ((i, j), (i + 1, j)) not in open_edges:
                 x = (i + 1) * cell
-                b.box("wall", (x - 0.05, j * cell - 0.05, 0), (x + 0.05, (j + 1) * cell + 0.05, height), WALL_RGBA)
+                b.box(
+                    "wall",
+                    (x - 0.05, j * cell - 0.05, 0),
+                    (x + 0.05, (j + 1) * cell + 0.05, height),
+                    WALL_RGBA,
+                )
             if j + 1 < n and ((i, j), (i, j + 1)) not in open_edges:
                 y = (j + 1) * cell
-                b.box("wall", (i * cell - 0.05, y - 0.05, 0), ((i + 1) * cell + 0.05, y + 0.05, height), WALL_RGBA)
+                b.box(
+                    "wall",
+                    (i * cell - 0.05, y - 0.05, 0),
+                    ((i + 1) * cell + 0.05, y + 0.05, height),
+                    WALL_RGBA,
+                )
     centres = [((i + 0.5) * cell, (j + 0.5) * cell) for i, j in tour[:-1]]
     loop = _simplify(np.array(centres))
     lo, hi = _bounds(side, side, height)
@@ -356,8 +377,16 @@ def _bookstore(seed: int, size) -> World:
     b.cylinder("tableleg", tx, ty, 0.0, 0.72, 0.08)
     b.box("counter", (X - 5.0, 0.5, 0), (X - 2.0, 1.1, 1.0))
     ys, yn = 2.5, Y - 1.7
-    loop = [(1.3, ys), (X - 1.7, ys), (X - 1.7, yn), (1.3, yn), (1.3, (ya + yb) / 2),
-            (X / 2 + 0.8, (ya + yb) / 2), (X / 2 + 0.8, ya - 1.2), (1.3, ya - 1.2)]
+    loop = [
+        (1.3, ys),
+        (X - 1.7, ys),
+        (X - 1.7, yn),
+        (1.3, yn),
+        (1.3, (ya + yb) / 2),
+        (X / 2 + 0.8, (ya + yb) / 2),
+        (X / 2 + 0.8, ya - 1.2),
+        (1.3, ya - 1.2),
+    ]
     lo, hi = _bounds(X, Y, H)
     return World("bookstore", seed, b.shapes, lo, hi, np.array(loop))
 
@@ -401,8 +430,12 @@ def _hospital(seed: int, size) -> World:
 def _hull_of_circles(c1, r1: float, c2, r2: float, spacing: float) -> np.ndarray:
     """Points every `spacing` metres along the boundary of the convex hull of two circles (CCW)."""
     ang = np.linspace(0, 2 * np.pi, 720, endpoint=False)
-    pts = np.vstack([np.c_[c1[0] + r1 * np.cos(ang), c1[1] + r1 * np.sin(ang)],
-                     np.c_[c2[0] + r2 * np.cos(ang), c2[1] + r2 * np.sin(ang)]])
+    pts = np.vstack(
+        [
+            np.c_[c1[0] + r1 * np.cos(ang), c1[1] + r1 * np.sin(ang)],
+            np.c_[c2[0] + r2 * np.cos(ang), c2[1] + r2 * np.sin(ang)],
+        ]
+    )
     hull = _convex_hull(pts)
     return _resample_closed(hull, spacing)
 
