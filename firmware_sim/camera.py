@@ -77,6 +77,7 @@ class DepthCamera:
         self.geomid = np.zeros(self.n, dtype=np.int32)
         self.dist = np.zeros(self.n, dtype=np.float64)
         self.frames = 0
+        self.frames_dropped = 0  # render jobs discarded because the render thread fell behind
 
     def render_depth(self, data: mujoco.MjData) -> np.ndarray:
         """Depth (metres, NaN = no return) as an (h, w) array for the body's current pose."""

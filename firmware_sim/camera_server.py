@@ -6,6 +6,7 @@ import contextlib
 import os
 import socket
 import struct
+import threading
 
 import msgpack
 
@@ -42,6 +43,7 @@ class CameraPublisher:
         self.frames_dropped = 0
         self.clients_rejected = 0
         self.send_errors = 0
+        self.lock = threading.Lock()  # the sim thread polls while the render thread publishes
         if unix_path:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(unix_path)
@@ -63,14 +65,16 @@ class CameraPublisher:
 
     def fileno_list(self) -> list[int]:
         """Sockets worth waking up for (listeners and clients), for the sim's select loop."""
-        return [s.fileno() for s in self.listeners] + list(self.clients)
-
-    def wants_write(self) -> list[int]:
-        """Clients that still have bytes queued."""
-        return [fd for fd, c in self.clients.items() if len(c.current) or c.pending]
+        with self.lock:
+            return [s.fileno() for s in self.listeners] + list(self.clients)
 
     def poll(self) -> None:
         """Accept new clients, discard anything clients send, notice hang-ups, push queued bytes."""
+        with self.lock:
+            self._poll()
+
+    def _poll(self) -> None:
+        """poll() without the lock."""
         for s in self.listeners:
             for _ in range(8):
                 try:
@@ -100,6 +104,11 @@ class CameraPublisher:
 
     def publish(self, frame: bytes) -> None:
         """Queue a frame for every client; a client still busy with an older queued frame loses it."""
+        with self.lock:
+            self._publish(frame)
+
+    def _publish(self, frame: bytes) -> None:
+        """publish() without the lock."""
         self.frames_published += 1
         for fd, c in list(self.clients.items()):
             if len(c.current) == 0:
@@ -136,6 +145,11 @@ class CameraPublisher:
 
     def close(self) -> None:
         """Close every socket and remove the Unix socket file."""
+        with self.lock:
+            self._close()
+
+    def _close(self) -> None:
+        """close() without the lock."""
         for fd in list(self.clients):
             self._drop(fd)
         for s in self.listeners:

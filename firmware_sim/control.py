@@ -67,14 +67,21 @@ def thrust_vector(vel, vel_sp, vel_integral, airframe: Airframe, gains: Gains) -
     return np.array([fxy[0], fxy[1], fz])
 
 
+def _cross(a, b) -> tuple[float, float, float]:
+    """Cross product of two 3-vectors as plain floats (np.cross is slow for single vectors)."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
 def desired_rotation(force, yaw: float) -> np.ndarray:
     """Rotation (body FLU in ENU) whose z axis is along the force and whose heading is yaw."""
-    z = np.asarray(force, float) / max(1e-9, float(np.linalg.norm(force)))
-    x_c = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-    y = np.cross(z, x_c)
-    y /= max(1e-9, float(np.linalg.norm(y)))
-    x = np.cross(y, z)
-    return np.column_stack([x, y, z])
+    fx, fy, fz = (float(v) for v in force)
+    n = max(1e-9, math.sqrt(fx * fx + fy * fy + fz * fz))
+    z = (fx / n, fy / n, fz / n)
+    y = _cross(z, (math.cos(yaw), math.sin(yaw), 0.0))
+    ny = max(1e-9, math.sqrt(y[0] ** 2 + y[1] ** 2 + y[2] ** 2))
+    y = (y[0] / ny, y[1] / ny, y[2] / ny)
+    x = _cross(y, z)
+    return np.array([[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]])
 
 
 def attitude_torque(r, r_des, omega_body, airframe: Airframe, gains: Gains) -> np.ndarray:

@@ -106,6 +106,7 @@ class MavlinkLink:
         self.intervals = {m: 1.0 / hz for m, hz in DEFAULT_RATES_HZ.items()}
         self.next_due = dict.fromkeys(self.intervals, 0.0)
         self.mission = MissionServer(self)
+        self._earliest_due = 0.0
         self.boot_wall = time.time()
         self._report_cache: tuple[float, tuple] | None = None
         self._last_mission_seq = -1
@@ -177,10 +178,15 @@ class MavlinkLink:
         if fc.mission_index != self._last_mission_seq:
             self._last_mission_seq = fc.mission_index
             self._emit(mav.MAVLINK_MSG_ID_MISSION_CURRENT, t)
+        if t + 1e-9 < self._earliest_due:
+            return
         for msg_id, interval in self.intervals.items():
             if interval > 0 and t + 1e-9 >= self.next_due[msg_id]:
                 self.next_due[msg_id] = max(self.next_due[msg_id] + interval, t - interval)
                 self._emit(msg_id, t)
+        self._earliest_due = min(
+            (self.next_due[k] for k, iv in self.intervals.items() if iv > 0), default=math.inf
+        )
 
     def _emit(self, msg_id: int, t: float) -> None:
         """Produce and send one message by id."""
@@ -566,6 +572,7 @@ class MavlinkLink:
         else:
             self.intervals[msg_id] = max(interval_us * 1e-6, 0.004)
         self.next_due[msg_id] = self.sim.time
+        self._earliest_due = self.sim.time
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_get_message_interval(self, p, _xy) -> int:

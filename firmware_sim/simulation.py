@@ -5,8 +5,10 @@ from __future__ import annotations
 import math
 import os
 import select
+import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import mujoco
@@ -117,6 +119,10 @@ class Simulation:
         self.steps = 0
         self.lock = threading.RLock()
         self._thread: threading.Thread | None = None
+        self._render_thread: threading.Thread | None = None
+        self._render_jobs: deque = deque()
+        self._render_cv = threading.Condition()
+        self.frame_sink = None  # optional callable(vehicle_index, header, z16) for in-process consumers
         self._running = False
         self.wall_started = 0.0
         self.lag_s = 0.0
@@ -257,18 +263,45 @@ class Simulation:
                 v.link.on_sim_step(self.time)
 
     def _capture(self, v: Vehicle) -> None:
-        """Render one depth frame and hand it to the vehicle's publisher (if anyone can listen)."""
-        if v.publisher is None and getattr(self, "frame_sink", None) is None:
-            v.camera.frames += 1
+        """Take a depth frame now: rendered inline, or queued for the render thread in real-time mode."""
+        if v.publisher is None and self.frame_sink is None:
             return
-        z16 = v.camera.render_z16(self.data)
-        header = v.camera.header(v.camera_seq, int(round(self.time * 1e6)))
+        seq, t_us = v.camera_seq, int(round(self.time * 1e6))
         v.camera_seq += 1
-        sink = getattr(self, "frame_sink", None)
-        if sink is not None:
-            sink(v.index, header, z16)
+        if self._render_thread is None:
+            self._deliver(v, seq, t_us, v.camera.render_z16(self.data))
+            return
+        with self._render_cv:
+            # Back-pressure, not drops: the camera always produces its frames; if rendering is the
+            # bottleneck the simulated clock runs slower than asked (visible as lag_s).
+            while len(self._render_jobs) >= len(self.vehicles) and self._running:
+                self._render_cv.wait(0.05)
+            self._render_jobs.append((v.index, seq, t_us, self.data.qpos.copy()))
+            self._render_cv.notify_all()
+
+    def _deliver(self, v: Vehicle, seq: int, t_us: int, z16: np.ndarray) -> None:
+        """Hand a rendered frame to the test sink and the vehicle's socket publisher (thread-safe)."""
+        header = v.camera.header(seq, t_us)
+        if self.frame_sink is not None:
+            self.frame_sink(v.index, header, z16)
         if v.publisher is not None:
             v.publisher.publish(encode_frame(header, z16.tobytes()))
+
+    def _render_loop(self) -> None:
+        """Render queued frames on a private MjData (mj_multiRay releases the GIL: runs beside physics)."""
+        data = mujoco.MjData(self.model)
+        while True:
+            with self._render_cv:
+                while self._running and not self._render_jobs:
+                    self._render_cv.wait(0.1)
+                if not self._running:
+                    return
+                index, seq, t_us, qpos = self._render_jobs.popleft()
+                self._render_cv.notify_all()
+            data.qpos[:] = qpos
+            mujoco.mj_kinematics(self.model, data)
+            v = self.vehicles[index]
+            self._deliver(v, seq, t_us, v.camera.render_z16(data))
 
     def _record_all(self) -> None:
         """Append every vehicle's true pose to its trajectory log."""
@@ -326,15 +359,26 @@ class Simulation:
         if self._thread is not None:
             return
         self._running = True
+        if any(v.camera is not None for v in self.vehicles):
+            # The render thread spends most time in mj_multiRay without the GIL; a short switch
+            # interval lets it get the GIL back quickly for its few numpy calls between rays.
+            sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
+            self._render_thread = threading.Thread(
+                target=self._render_loop, name="firmware-sim-camera", daemon=True
+            )
+            self._render_thread.start()
         self._thread = threading.Thread(target=self._run, name="firmware-sim", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
         """Stop the thread and close every socket."""
         self._running = False
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
+        with self._render_cv:
+            self._render_cv.notify_all()
+        for th in (self._thread, self._render_thread):
+            if th is not None:
+                th.join(timeout=5)
+        self._thread = self._render_thread = None
         for v in self.vehicles:
             if v.link is not None:
                 v.link.close()
