@@ -205,6 +205,15 @@ class Simulation:
             q = self.data.qpos[v.qpos_adr : v.qpos_adr + 7].copy()
         return q[:3], q[3:]
 
+    def place_vehicle(self, i: int, pos, yaw: float = 0.0) -> None:
+        """Teleport vehicle i (at rest, level, given heading) for tests; updates derived quantities."""
+        v = self.vehicles[i]
+        with self.lock:
+            self.data.qpos[v.qpos_adr: v.qpos_adr + 3] = pos
+            self.data.qpos[v.qpos_adr + 3: v.qpos_adr + 7] = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+            self.data.qvel[v.qvel_adr: v.qvel_adr + 6] = 0.0
+            mujoco.mj_forward(self.model, self.data)
+
     def true_velocity(self, i: int) -> np.ndarray:
         """True world-frame linear velocity of vehicle i."""
         v = self.vehicles[i]
