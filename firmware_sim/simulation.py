@@ -25,7 +25,7 @@ from firmware_sim.flight import (
     FlightController,
     NavTarget,
 )
-from firmware_sim.frames import mat_to_quat, quat_to_mat, rot_z
+from firmware_sim.frames import mat_to_quat, quat_to_mat, rot_z, yaw_of
 from firmware_sim.odometry import NOISE_PRESETS, NoiseConfig, OdometryModel
 from firmware_sim.worlds import World, compose_mjcf
 
@@ -132,7 +132,9 @@ class Simulation:
             rng_odo, rng_cam = (np.random.default_rng(s) for s in ss.spawn(2))
             body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, f"quad{i}")
             jnt = self.model.body_jntadr[body]
-            x, y, z, yaw = (float(v) for v in pose)
+            # The pose as MuJoCo placed it (the MJCF text rounds), so frames start exactly at zero.
+            x, y = (float(c) for c in self.data.xpos[body][:2])
+            yaw = yaw_of(self.data.xmat[body].reshape(3, 3))
             # The reporting frame is ENU-like; MAVLink NED is its x/y swap, so a frame yawed by
             # (heading - 90 deg) reports x along the initial heading, like VIO without a compass.
             if frame == "start":
