@@ -458,6 +458,14 @@ class MavlinkLink:
         )
         yaw = None if mask & IGNORE_YAW or not math.isfinite(m.yaw) else float(m.yaw)
         yaw_rate = None if mask & IGNORE_YAW_RATE or not math.isfinite(m.yaw_rate) else float(m.yaw_rate)
+        if (
+            np.isinf(pos).any()
+            or np.isinf(vel).any()
+            or (yaw is not None and abs(yaw) > 100)
+            or (yaw_rate is not None and abs(yaw_rate) > 100)
+        ):
+            self.stats["setpoint_invalid"] += 1
+            return
         s = self.sim.estimated_state(self.v)
         here = ENU_TO_NED @ s.pos
         yaw_now = euler_zyx(enu_flu_to_ned_frd(s.rot))[2]
