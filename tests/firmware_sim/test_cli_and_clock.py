@@ -19,9 +19,28 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_cli_runs_and_reports_endpoints(tmp_path, port_block):
-    cmd = [sys.executable, "-m", "firmware_sim.cli", "--world", "maze", "--vehicles", "2", "--seed", "1",
-           "--speed", "5", "--duration", "3", "--route", "builtin", "--mavlink-port", str(port_block),
-           "--camera-dir", str(tmp_path), "--no-camera"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "firmware_sim.cli",
+        "--world",
+        "maze",
+        "--vehicles",
+        "2",
+        "--seed",
+        "1",
+        "--speed",
+        "5",
+        "--duration",
+        "3",
+        "--route",
+        "builtin",
+        "--mavlink-port",
+        str(port_block),
+        "--camera-dir",
+        str(tmp_path),
+        "--no-camera",
+    ]
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     lines = out.stdout.strip().splitlines()
@@ -32,7 +51,17 @@ def test_cli_runs_and_reports_endpoints(tmp_path, port_block):
 
 
 def test_cli_rejects_bad_options():
-    cmd = [sys.executable, "-m", "firmware_sim.cli", "--world", "maze", "--camera-res", "0x5", "--duration", "1"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "firmware_sim.cli",
+        "--world",
+        "maze",
+        "--camera-res",
+        "0x5",
+        "--duration",
+        "1",
+    ]
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "coopd-sim:" in out.stderr
 

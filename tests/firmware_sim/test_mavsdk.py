@@ -40,11 +40,17 @@ def test_mavsdk_arm_takeoff_offboard_land(port_block):
         system = m.first_autopilot(10.0)
         assert system is not None and system.is_connected()
         telemetry, action, offboard = Telemetry(system), Action(system), Offboard(system)
-        health = poll(lambda: (h := telemetry.health()).is_armable and h.is_local_position_ok and h,
-                      15, "health: armable with a local position")
+        health = poll(
+            lambda: (h := telemetry.health()).is_armable and h.is_local_position_ok and h,
+            15,
+            "health: armable with a local position",
+        )
         assert health.is_home_position_ok and health.is_global_position_ok
-        pv = poll(lambda: (p := telemetry.position_velocity_ned()) and math.isfinite(p.position.north_m) and p,
-                  5, "position telemetry")
+        pv = poll(
+            lambda: (p := telemetry.position_velocity_ned()) and math.isfinite(p.position.north_m) and p,
+            5,
+            "position telemetry",
+        )
         assert math.hypot(pv.position.north_m, pv.position.east_m) < 0.2
 
         start, _ = sim.true_pose(0)
