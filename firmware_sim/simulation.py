@@ -276,10 +276,10 @@ class Simulation:
 
     def _capture(self, v: Vehicle) -> None:
         """Take a depth frame now: rendered inline, or queued for the render thread in real-time mode."""
-        if v.publisher is None and self.frame_sink is None:
-            return
         seq, t_us = v.camera_seq, int(round(self.time * 1e6))
         v.camera_seq += 1
+        if self.frame_sink is None and (v.publisher is None or not v.publisher.clients):
+            return  # nobody listens: skip the rays, keep the frame counter
         if self._render_thread is None:
             self._deliver(v, seq, t_us, v.camera.render_z16(self.data))
             return
