@@ -100,6 +100,7 @@ def main() -> int:
     ap.add_argument("--wall", type=float, default=8.0, help="wall seconds measured per configuration")
     ap.add_argument("--speed", type=float, default=50.0, help="requested speed (high = run flat out)")
     a = ap.parse_args()
+    load_at_start = round(os.getloadavg()[0], 2)  # the machine is shared: context for the figures
     world = build_world(a.world, 1)
     ray_ms = bare_multiray_ms(world, 40)
     step_rate = bare_step_rate(world, 2.0)
@@ -113,6 +114,7 @@ def main() -> int:
         "benchmark": "sim",
         "world": a.world,
         "cpu_count": os.cpu_count(),
+        "load_average_1min_at_start": load_at_start,
         "peer_bare_multiray_ms_per_frame": round(ray_ms, 3),
         "peer_bare_multiray_rays_per_s": round(peer_rays),
         "peer_bare_mj_step_per_s_one_quad": round(step_rate),

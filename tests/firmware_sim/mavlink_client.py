@@ -12,8 +12,9 @@ class Client:
     """Listens on 127.0.0.1:port like a GCS/companion (udpin) and replies to the vehicle's address."""
 
     def __init__(self, port: int, target_system: int = 1):
-        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=245,
-                                               source_component=190, dialect="common")
+        self.conn = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{port}", source_system=245, source_component=190, dialect="common"
+        )
         self.target = target_system
 
     @property
@@ -54,14 +55,29 @@ class Client:
         self.mav.mission_count_send(self.target, 1, len(items), 0)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            m = self.conn.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"],
-                                     blocking=True, timeout=0.5)
+            m = self.conn.recv_match(
+                type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], blocking=True, timeout=0.5
+            )
             if m is None:
                 continue
             if m.get_type() == "MISSION_ACK":
                 return m.type
             it = items[m.seq]
-            self.mav.mission_item_int_send(self.target, 1, m.seq, it["frame"], it["command"], 0, 1,
-                                           it.get("p1", 0), it.get("p2", 0), 0, it.get("p4", float("nan")),
-                                           it.get("x", 0), it.get("y", 0), it.get("z", 0), 0)
+            self.mav.mission_item_int_send(
+                self.target,
+                1,
+                m.seq,
+                it["frame"],
+                it["command"],
+                0,
+                1,
+                it.get("p1", 0),
+                it.get("p2", 0),
+                0,
+                it.get("p4", float("nan")),
+                it.get("x", 0),
+                it.get("y", 0),
+                it.get("z", 0),
+                0,
+            )
         raise TimeoutError("mission upload did not finish")

@@ -16,8 +16,17 @@ from firmware_sim.worlds import build_world
 
 from .mavlink_client import Client
 
-REQUIRED_STREAMS = {"HEARTBEAT", "SYS_STATUS", "ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED",
-                    "ODOMETRY", "GLOBAL_POSITION_INT", "HOME_POSITION", "EXTENDED_SYS_STATE"}
+REQUIRED_STREAMS = {
+    "HEARTBEAT",
+    "SYS_STATUS",
+    "ATTITUDE",
+    "ATTITUDE_QUATERNION",
+    "LOCAL_POSITION_NED",
+    "ODOMETRY",
+    "GLOBAL_POSITION_INT",
+    "HOME_POSITION",
+    "EXTENDED_SYS_STATE",
+}
 
 
 @pytest.fixture(scope="module")
@@ -130,8 +139,9 @@ def test_arm_takeoff_offboard_land(sim_and_client):
     deadline = time.monotonic() + 6
     switched = False
     while time.monotonic() < deadline:
-        c0.mav.set_position_target_local_ned_send(0, 1, 1, mav.MAV_FRAME_LOCAL_NED, 0b0000_1111_1111_1000,
-                                                  1.5, 0.0, -1.5, 0, 0, 0, 0, 0, 0, 0, 0)
+        c0.mav.set_position_target_local_ned_send(
+            0, 1, 1, mav.MAV_FRAME_LOCAL_NED, 0b0000_1111_1111_1000, 1.5, 0.0, -1.5, 0, 0, 0, 0, 0, 0, 0, 0
+        )
         if not switched and time.monotonic() > deadline - 5.5:
             assert c0.set_mode(MAIN_OFFBOARD) == 0
             switched = True
