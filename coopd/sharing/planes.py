@@ -29,8 +29,8 @@ def encode(cells: np.ndarray) -> bytes:
     cells = np.ascontiguousarray(cells, dtype=np.int8).reshape(-1)
     n = cells.size
     plane = np.zeros((n + 3) // 4, dtype=np.uint8)
-    nibbles = np.zeros((n + 1) // 2, dtype=np.uint8)
-    raw = np.empty(n, dtype=np.int8)
+    nibbles = np.zeros((n + 1) // 2 + 1, dtype=np.uint8)  # +1: the kernel writes one ahead
+    raw = np.empty(n + 1, dtype=np.int8)
     words = cells[: n // 8 * 8].view(np.uint64)
     nn, nr, bad = k.encode(cells, words, plane, nibbles, raw)
     if bad >= 0:
