@@ -197,3 +197,22 @@ def test_fuzz_mutated_messages(kind, data):
     if data.draw(st.booleans()):
         del msg[data.draw(st.integers(0, len(msg))):]
     _decode_or_wire_error(bytes(msg))
+
+
+@pytest.mark.parametrize("encoding", ["raw", "thesis", "thesis-zstd", "planes-zstd"])
+def test_hostile_payload_is_refused_before_allocating_the_map(encoding):
+    import tracemalloc
+    n = 2_000_000
+    grid = OccupancyGrid(np.full((200, 100, 100), -1, np.int8), 0.1)
+    msg = bytearray(encode_map(grid, MapMeta(1), encoding)[:92])
+    garbage = bytes(range(256)) * 4
+    msg[84:88] = len(garbage).to_bytes(4, "little")
+    msg[88:92] = zlib.crc32(garbage).to_bytes(4, "little")
+    tracemalloc.start()
+    try:
+        with pytest.raises(WireError):
+            decode_map(bytes(msg) + garbage, DecodeLimits(max_cells=n))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < n // 4
