@@ -14,6 +14,11 @@ NIBBLE_VALUES = np.array([10, 20, 30, 40, 50, 60, 70, 80, 90, -2], dtype=np.int8
 """The values HIMM updates (±10, -30 from 50) reach, and inaccessible: one nibble each."""
 RAW_NIBBLE = 15
 ALL_UNKNOWN = np.uint64(0xFFFFFFFFFFFFFFFF)
+ALL_OCCUPIED = np.uint64(0x6464646464646464)
+FREE_BYTE = np.uint8(0x55)
+"""Plane byte of four free (0) cells."""
+OCCUPIED_BYTE = np.uint8(0xAA)
+"""Plane byte of four occupied (100) cells."""
 
 OK = 0
 ERR_BAD_CELL = -1
@@ -74,10 +79,15 @@ def encode(cells, words, plane, nibbles, raw):
         if w + 4 <= nw and (words[w] & words[w + 1] & words[w + 2] & words[w + 3]) == ALL_UNKNOWN:
             w += 4
             continue
-        if words[w] == ALL_UNKNOWN:
+        word = words[w]
+        if word == ALL_UNKNOWN:
             w += 1
             continue
         base = 8 * w
+        if word == 0 or word == ALL_OCCUPIED:  # 8 certain cells: common inside rooms and walls
+            plane[base >> 2] = plane[(base >> 2) + 1] = FREE_BYTE if word == 0 else OCCUPIED_BYTE
+            w += 1
+            continue
         invalid = False
         for half in range(2):
             byte = np.uint8(0)
