@@ -216,3 +216,11 @@ def test_hostile_payload_is_refused_before_allocating_the_map(encoding):
     finally:
         tracemalloc.stop()
     assert peak < n // 4
+
+
+@pytest.mark.parametrize("encoding", ["raw", "thesis", "thesis-zstd", "planes-zstd"])
+def test_encoder_refuses_cells_a_decoder_would_refuse(encoding):
+    cells = np.zeros((2, 2, 2), np.int8)
+    cells[1, 1, 1] = 120
+    with pytest.raises(ValueError):
+        encode_map(OccupancyGrid(cells, 0.1), MapMeta(1), encoding)
