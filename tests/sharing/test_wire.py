@@ -181,12 +181,14 @@ def _decode_or_wire_error(data: bytes):
     return grid
 
 
+@pytest.mark.timeout(120)  # "never hang": a stuck decoder fails here, not at the global limit
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=300))
 def test_fuzz_random_messages(data):
     _decode_or_wire_error(data)
 
 
+@pytest.mark.timeout(120)  # "never hang": a stuck decoder fails here, not at the global limit
 @settings(max_examples=300, deadline=None)
 @given(st.sampled_from(["thesis0", "raw", "thesis", "thesis-zstd", "planes-zstd"]), st.data())
 def test_fuzz_mutated_messages(kind, data):
