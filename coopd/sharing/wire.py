@@ -111,6 +111,14 @@ class MessageInfo:
         """Bytes of the whole message: where it ends inside a padded MTP transfer."""
         return self.header_size + self.payload_size
 
+    def check(self, limits: "DecodeLimits") -> None:
+        """WireError if the announced map or message exceeds limits (lets a transport refuse early)."""
+        if self.cells > limits.max_cells:
+            raise WireError(f"map of {self.shape} = {self.cells} cells exceeds the limit of "
+                            f"{limits.max_cells}")
+        if self.total_size > limits.max_bytes:
+            raise WireError(f"message of {self.total_size} bytes exceeds the limit of {limits.max_bytes}")
+
 
 # --------------------------------------------------------------------------------------- encode
 def negotiate(peer_encodings) -> str:
@@ -318,8 +326,7 @@ def decode_map(data, limits: DecodeLimits = DEFAULT_LIMITS) -> tuple[OccupancyGr
     if len(data) > limits.max_bytes:
         raise WireError(f"message of {len(data)} bytes exceeds the limit of {limits.max_bytes}")
     info = peek(data)
-    if info.cells > limits.max_cells:
-        raise WireError(f"map of {info.shape} = {info.cells} cells exceeds the limit of {limits.max_cells}")
+    info.check(limits)
     if len(data) != info.total_size:
         raise WireError(f"message is {len(data)} bytes but its header announces {info.total_size}")
     payload = memoryview(data)[info.header_size:]

@@ -114,6 +114,9 @@ def test_limits_refuse_before_decoding():
         decode_map(msg, DecodeLimits(max_cells=999))
     with pytest.raises(WireError, match="bytes exceeds"):
         decode_map(msg, DecodeLimits(max_bytes=len(msg) - 1))
+    with pytest.raises(WireError, match="bytes exceeds"):  # from the header alone, as MTP will
+        peek(msg[:92]).check(DecodeLimits(max_bytes=len(msg) - 1))
+    peek(msg[:92]).check(DecodeLimits(max_cells=1000, max_bytes=len(msg)))
 
 
 def test_newer_version_rejected_clearly():
