@@ -1,6 +1,7 @@
 """.cmap files: exactly one serialized map message, the same bytes that go on the wire."""
 
 import os
+import stat
 
 from coopd.grid import OccupancyGrid
 from coopd.sharing.wire import DEFAULT_LIMITS, DecodeLimits, MapMeta, WireError, decode_map, encode_map
@@ -20,7 +21,10 @@ def save_cmap(path, grid: OccupancyGrid, meta: MapMeta, encoding: str = "default
 def read_cmap_bytes(path, limits: DecodeLimits = DEFAULT_LIMITS) -> bytes:
     """The raw message in a .cmap file, refusing files larger than limits.max_bytes unread."""
     with open(path, "rb") as f:
-        size = os.fstat(f.fileno()).st_size
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise WireError(f"{path}: not a regular file")
+        size = st.st_size
         if size > limits.max_bytes:
             raise WireError(f"{path}: {size} bytes exceeds the limit of {limits.max_bytes}")
         data = f.read(limits.max_bytes + 1)

@@ -26,11 +26,14 @@ def encode(cells: np.ndarray) -> bytes:
     """The planes-zstd payload of flat int8 cells (values -2..100)."""
     import zstandard
 
-    cells = np.ascontiguousarray(cells, dtype=np.int8).reshape(-1)
+    cells = np.asarray(cells)
+    if cells.dtype != np.int8:
+        raise ValueError(f"cells must be int8, got {cells.dtype}")
+    cells = np.ascontiguousarray(cells).reshape(-1)
     n = cells.size
     plane = np.zeros((n + 3) // 4, dtype=np.uint8)
-    nibbles = np.zeros((n + 1) // 2, dtype=np.uint8)
-    raw = np.empty(n, dtype=np.int8)
+    nibbles = np.zeros((n + 1) // 2 + 1, dtype=np.uint8)  # +1: the kernel writes one ahead
+    raw = np.empty(n + 1, dtype=np.int8)
     words = cells[: n // 8 * 8].view(np.uint64)
     nn, nr, bad = k.encode(cells, words, plane, nibbles, raw)
     if bad >= 0:

@@ -14,6 +14,11 @@ NIBBLE_VALUES = np.array([10, 20, 30, 40, 50, 60, 70, 80, 90, -2], dtype=np.int8
 """The values HIMM updates (±10, -30 from 50) reach, and inaccessible: one nibble each."""
 RAW_NIBBLE = 15
 ALL_UNKNOWN = np.uint64(0xFFFFFFFFFFFFFFFF)
+ALL_OCCUPIED = np.uint64(0x6464646464646464)
+FREE_BYTE = np.uint8(0x55)
+"""Plane byte of four free (0) cells."""
+OCCUPIED_BYTE = np.uint8(0xAA)
+"""Plane byte of four occupied (100) cells."""
 
 OK = 0
 ERR_BAD_CELL = -1
@@ -24,23 +29,48 @@ ERR_BAD_RAW_VALUE = -5
 ERR_PADDING = -6
 
 
+def _lookup_tables():
+    """By cell byte: its 2-bit class (4 = not a cell value) and its escape nibble."""
+    cls = np.full(256, 4, dtype=np.uint8)
+    nib = np.full(256, RAW_NIBBLE, dtype=np.uint8)
+    for v in range(-2, 101):
+        cls[v & 0xFF] = 3
+    cls[0xFF], cls[0], cls[100] = 0, 1, 2
+    for k, v in enumerate(NIBBLE_VALUES):
+        nib[int(v) & 0xFF] = k
+    return cls, nib
+
+
+CLASS_OF, NIBBLE_OF = _lookup_tables()
+
+
 @nb.njit(**_JIT)
-def _nibble_code(c):
-    for k in range(NIBBLE_VALUES.size):
-        if NIBBLE_VALUES[k] == c:
-            return k
-    return RAW_NIBBLE
+def _encode_cells(cells, lo, hi, plane, nibbles, raw, nn, nr):
+    """Encode cells[lo:hi] (lo a multiple of 4) into zeroed streams; (nn, nr, bad index)."""
+    for i in range(lo, hi):
+        c = cells[i]
+        code = CLASS_OF[np.uint8(c)]
+        if code >= 3:
+            if code == 4:
+                return nn, nr, i
+            k = NIBBLE_OF[np.uint8(c)]
+            nibbles[nn >> 1] |= np.uint8(k << (4 * (nn & 1)))
+            nn += 1
+            if k == RAW_NIBBLE:
+                raw[nr] = c
+                nr += 1
+        plane[i >> 2] |= np.uint8(code << (2 * (i & 3)))
+    return nn, nr, -1
 
 
 @nb.njit(**_JIT)
 def encode(cells, words, plane, nibbles, raw):
-    """Fill zeroed plane (ceil(n/4)), zeroed nibbles (ceil(n/2)) and raw (n) from the cells.
+    """Fill zeroed plane (ceil(n/4)), zeroed nibbles (ceil(n/2) + 1) and raw (n + 1) from the cells.
 
     words is cells[:n // 8 * 8] viewed as uint64: blocks of 32 unknown cells are skipped
-    whole, so the cost follows the known cells. Returns (nibbles used, raw bytes used, bad
-    cell index or -1).
+    whole, so the cost follows the known cells; a plane byte is built in a register from
+    table look-ups. Returns (nibbles used, raw bytes used, bad cell index or -1).
     """
-    n = cells.size
     nn = 0
     nr = 0
     nw = words.size
@@ -49,49 +79,38 @@ def encode(cells, words, plane, nibbles, raw):
         if w + 4 <= nw and (words[w] & words[w + 1] & words[w + 2] & words[w + 3]) == ALL_UNKNOWN:
             w += 4
             continue
-        if words[w] == ALL_UNKNOWN:
+        word = words[w]
+        if word == ALL_UNKNOWN:
             w += 1
             continue
-        for i in range(8 * w, 8 * w + 8):
-            c = cells[i]
-            if c == -1:
-                continue
-            if c < -2 or c > 100:
-                return nn, nr, i
-            if c == 0:
-                code = 1
-            elif c == 100:
-                code = 2
-            else:
-                code = 3
-                k = _nibble_code(c)
-                nibbles[nn >> 1] |= np.uint8(k << (4 * (nn & 1)))
-                nn += 1
-                if k == RAW_NIBBLE:
-                    raw[nr] = c
-                    nr += 1
-            plane[i >> 2] |= np.uint8(code << (2 * (i & 3)))
-        w += 1
-    for i in range(8 * nw, n):
-        c = cells[i]
-        if c == -1:
+        base = 8 * w
+        if word == 0 or word == ALL_OCCUPIED:  # 8 certain cells: common inside rooms and walls
+            plane[base >> 2] = plane[(base >> 2) + 1] = FREE_BYTE if word == 0 else OCCUPIED_BYTE
+            w += 1
             continue
-        if c < -2 or c > 100:
-            return nn, nr, i
-        if c == 0:
-            code = 1
-        elif c == 100:
-            code = 2
-        else:
-            code = 3
-            k = _nibble_code(c)
-            nibbles[nn >> 1] |= np.uint8(k << (4 * (nn & 1)))
-            nn += 1
-            if k == RAW_NIBBLE:
+        invalid = False
+        for half in range(2):
+            byte = np.uint8(0)
+            for j in range(4):
+                i = base + 4 * half + j
+                c = cells[i]
+                code = CLASS_OF[np.uint8(c)]
+                invalid |= code == 4
+                # branch-free escape bookkeeping: noisy free space makes escapes unpredictable
+                esc = np.int64(code == 3)
+                k = NIBBLE_OF[np.uint8(c)]
+                nibbles[nn >> 1] |= np.uint8((k * esc) << (4 * (nn & 1)))
+                nn += esc
                 raw[nr] = c
-                nr += 1
-        plane[i >> 2] |= np.uint8(code << (2 * (i & 3)))
-    return nn, nr, -1
+                nr += esc & np.int64(k == RAW_NIBBLE)
+                byte |= np.uint8((code & 3) << (2 * j))
+            plane[(base >> 2) + half] = byte
+        if invalid:
+            for i in range(base, base + 8):
+                if CLASS_OF[np.uint8(cells[i])] == 4:
+                    return nn, nr, i
+        w += 1
+    return _encode_cells(cells, 8 * nw, cells.size, plane, nibbles, raw, nn, nr)
 
 
 @nb.njit(**_JIT)

@@ -111,6 +111,14 @@ class MessageInfo:
         """Bytes of the whole message: where it ends inside a padded MTP transfer."""
         return self.header_size + self.payload_size
 
+    def check(self, limits: "DecodeLimits") -> None:
+        """WireError if the announced map or message exceeds limits (lets a transport refuse early)."""
+        if self.cells > limits.max_cells:
+            raise WireError(f"map of {self.shape} = {self.cells} cells exceeds the limit of "
+                            f"{limits.max_cells}")
+        if self.total_size > limits.max_bytes:
+            raise WireError(f"message of {self.total_size} bytes exceeds the limit of {limits.max_bytes}")
+
 
 # --------------------------------------------------------------------------------------- encode
 def negotiate(peer_encodings) -> str:
@@ -122,10 +130,19 @@ def negotiate(peer_encodings) -> str:
     return "thesis"
 
 
+def _raw_cells(cells: np.ndarray) -> bytes:
+    """Flat int8 cells as bytes, refusing values a decoder would refuse."""
+    if cells.dtype != np.int8:
+        raise ValueError(f"cells must be int8, got {cells.dtype}")
+    if cells.size and (cells.min() < codec.CELL_MIN or cells.max() > codec.CELL_MAX):
+        raise ValueError(f"cells hold values outside the cell range {codec.CELL_MIN}..{codec.CELL_MAX}")
+    return cells.tobytes()
+
+
 def encode_payload(cells: np.ndarray, encoding: str) -> bytes:
     """The payload of flat int8 cells in a named encoding (no header)."""
     if encoding == "raw":
-        return cells.tobytes()
+        return _raw_cells(cells)
     if encoding == "planes-zstd":
         return planes.encode(cells)
     stream = codec.compress(cells)
@@ -170,7 +187,7 @@ def encode_map(grid: OccupancyGrid, meta: MapMeta, encoding: str = "default") ->
 def encode_thesis_map(grid: OccupancyGrid, vehicle_id: int, compressed: bool = True) -> bytes:
     """A thesis message (type 0, Figure 31), byte-exact; it cannot carry the origin or version."""
     _check_int32("vehicle id", [vehicle_id])
-    payload = codec.compress(grid.flat).tobytes() if compressed else grid.flat.tobytes()
+    payload = codec.compress(grid.flat).tobytes() if compressed else _raw_cells(grid.flat)
     if len(payload) > INT32_MAX:
         raise ValueError("payload exceeds the int32 data size of the thesis header")
     map_type = MAP_2D if grid.shape[2] == 1 else MAP_3D
@@ -309,8 +326,7 @@ def decode_map(data, limits: DecodeLimits = DEFAULT_LIMITS) -> tuple[OccupancyGr
     if len(data) > limits.max_bytes:
         raise WireError(f"message of {len(data)} bytes exceeds the limit of {limits.max_bytes}")
     info = peek(data)
-    if info.cells > limits.max_cells:
-        raise WireError(f"map of {info.shape} = {info.cells} cells exceeds the limit of {limits.max_cells}")
+    info.check(limits)
     if len(data) != info.total_size:
         raise WireError(f"message is {len(data)} bytes but its header announces {info.total_size}")
     payload = memoryview(data)[info.header_size:]

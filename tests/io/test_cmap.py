@@ -49,3 +49,8 @@ def test_load_refuses_oversized_and_corrupt_files(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(WireError, match="m.cmap"):
         load_cmap(path)
+
+
+def test_load_refuses_non_regular_files(tmp_path):
+    with pytest.raises(WireError, match="not a regular file"):
+        load_cmap("/dev/zero")

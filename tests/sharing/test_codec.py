@@ -168,12 +168,14 @@ def _expand_or_error(stream: np.ndarray, expected: int):
     return out
 
 
+@pytest.mark.timeout(120)  # "never hang": a stuck decoder fails here, not at the global limit
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=200), st.integers(0, 100_000))
 def test_fuzz_random_streams(data, expected):
     _expand_or_error(np.frombuffer(data, np.int8), expected)
 
 
+@pytest.mark.timeout(120)  # "never hang": a stuck decoder fails here, not at the global limit
 @settings(max_examples=200, deadline=None)
 @given(runs_strategy(20_000), st.data())
 def test_fuzz_mutated_streams(cells, data):

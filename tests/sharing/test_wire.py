@@ -114,6 +114,9 @@ def test_limits_refuse_before_decoding():
         decode_map(msg, DecodeLimits(max_cells=999))
     with pytest.raises(WireError, match="bytes exceeds"):
         decode_map(msg, DecodeLimits(max_bytes=len(msg) - 1))
+    with pytest.raises(WireError, match="bytes exceeds"):  # from the header alone, as MTP will
+        peek(msg[:92]).check(DecodeLimits(max_bytes=len(msg) - 1))
+    peek(msg[:92]).check(DecodeLimits(max_cells=1000, max_bytes=len(msg)))
 
 
 def test_newer_version_rejected_clearly():
@@ -181,12 +184,14 @@ def _decode_or_wire_error(data: bytes):
     return grid
 
 
+@pytest.mark.timeout(120)  # "never hang": a stuck decoder fails here, not at the global limit
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=300))
 def test_fuzz_random_messages(data):
     _decode_or_wire_error(data)
 
 
+@pytest.mark.timeout(120)  # "never hang": a stuck decoder fails here, not at the global limit
 @settings(max_examples=300, deadline=None)
 @given(st.sampled_from(["thesis0", "raw", "thesis", "thesis-zstd", "planes-zstd"]), st.data())
 def test_fuzz_mutated_messages(kind, data):
@@ -197,3 +202,30 @@ def test_fuzz_mutated_messages(kind, data):
     if data.draw(st.booleans()):
         del msg[data.draw(st.integers(0, len(msg))):]
     _decode_or_wire_error(bytes(msg))
+
+
+@pytest.mark.parametrize("encoding", ["raw", "thesis", "thesis-zstd", "planes-zstd"])
+def test_hostile_payload_is_refused_before_allocating_the_map(encoding):
+    import tracemalloc
+    n = 2_000_000
+    grid = OccupancyGrid(np.full((200, 100, 100), -1, np.int8), 0.1)
+    msg = bytearray(encode_map(grid, MapMeta(1), encoding)[:92])
+    garbage = bytes(range(256)) * 4
+    msg[84:88] = len(garbage).to_bytes(4, "little")
+    msg[88:92] = zlib.crc32(garbage).to_bytes(4, "little")
+    tracemalloc.start()
+    try:
+        with pytest.raises(WireError):
+            decode_map(bytes(msg) + garbage, DecodeLimits(max_cells=n))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < n // 4
+
+
+@pytest.mark.parametrize("encoding", ["raw", "thesis", "thesis-zstd", "planes-zstd"])
+def test_encoder_refuses_cells_a_decoder_would_refuse(encoding):
+    cells = np.zeros((2, 2, 2), np.int8)
+    cells[1, 1, 1] = 120
+    with pytest.raises(ValueError):
+        encode_map(OccupancyGrid(cells, 0.1), MapMeta(1), encoding)
