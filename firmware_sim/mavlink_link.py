@@ -107,6 +107,7 @@ class MavlinkLink:
         self.next_due = dict.fromkeys(self.intervals, 0.0)
         self.mission = MissionServer(self)
         self._earliest_due = 0.0
+        self._after_ack: list[int] = []
         self.boot_wall = time.time()
         self._report_cache: tuple[float, tuple] | None = None
         self._last_mission_seq = -1
@@ -126,6 +127,7 @@ class MavlinkLink:
             mav.MAVLINK_MSG_ID_MISSION_CURRENT: self._mission_current,
             mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
         }
+        self._interval_reply = (0, -1)
 
     # ------------------------------------------------------------------ plumbing
 
@@ -189,7 +191,10 @@ class MavlinkLink:
         )
 
     def _emit(self, msg_id: int, t: float) -> None:
-        """Produce and send one message by id."""
+        """Produce and send one message by id (-1: the pending MESSAGE_INTERVAL reply)."""
+        if msg_id == -1:
+            self.send(self.tx.message_interval_encode(*self._interval_reply))
+            return
         self.send(self.producers[msg_id](t))
 
     # ------------------------------------------------------------------ state views
@@ -502,6 +507,9 @@ class MavlinkLink:
                 result = mav.MAV_RESULT_DENIED
         self.stats[f"cmd_{command}_{result}"] += 1
         self.send(self.tx.command_ack_encode(command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()))
+        after, self._after_ack = self._after_ack, []
+        for msg_id in after:  # requested messages follow their ACK
+            self._emit(msg_id, self.sim.time)
 
     def load_mission(self, items) -> None:
         """Hand an uploaded flight plan to the flight controller."""
@@ -580,18 +588,19 @@ class MavlinkLink:
         if msg_id not in self.producers:
             return mav.MAV_RESULT_UNSUPPORTED
         iv = self.intervals.get(msg_id, 0.0)
-        self.send(self.tx.message_interval_encode(msg_id, int(iv * 1e6) if iv > 0 else -1))
+        self._interval_reply = (msg_id, int(iv * 1e6) if iv > 0 else -1)
+        self._after_ack.append(-1)
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_request_message(self, p, _xy) -> int:
         msg_id = int(p[0])
         if msg_id not in self.producers:
             return mav.MAV_RESULT_UNSUPPORTED
-        self._emit(msg_id, self.sim.time)
+        self._after_ack.append(msg_id)
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_request_autopilot_capabilities(self, p, _xy) -> int:
-        self._emit(mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION, self.sim.time)
+        self._after_ack.append(mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_set_home(self, p, _xy) -> int:
