@@ -180,16 +180,20 @@ class VehicleLink:
         except Exception:  # pymavlink raises on some malformed input even with robust parsing
             self.counters["rx_parse_errors"] += 1
             return
+        from_fc = False
         for m in msgs[:MAX_MESSAGES_PER_READ]:
             if m.get_type() == "BAD_DATA":
                 self.counters["rx_bad_data"] += 1
                 continue
             try:
-                self._dispatch(m, now)
+                from_fc |= self._dispatch(m, now)
             except (ValueError, TypeError, AttributeError, OverflowError):
                 self.counters["rx_handler_errors"] += 1
+        if from_fc:
+            self.transport.accept_source()
 
-    def _dispatch(self, m, now: float) -> None:
+    def _dispatch(self, m, now: float) -> bool:
+        """Handle one message; True if it came from the FC we follow."""
         kind = m.get_type()
         src = m.get_srcSystem()
         if kind == "HEARTBEAT" and self.target_system == 0 and self._is_autopilot(m):
@@ -197,9 +201,11 @@ class VehicleLink:
             log.info("locked onto autopilot system %d (component %d)", src, m.get_srcComponent())
         if src != self.target_system or self.target_system == 0:
             self.counters["rx_foreign"] += 1
-            return
+            return False
         self.counters["rx_messages"] += 1
         self._last_rx = now
+        if self._last_odometry_msg == -math.inf:
+            self._last_odometry_msg = now  # give ODOMETRY FALLBACK_AFTER_S to show up before falling back
         if kind == "HEARTBEAT":
             if self._is_autopilot(m):
                 self._last_heartbeat = now
@@ -218,6 +224,7 @@ class VehicleLink:
             self.clock.on_system_time(m.time_boot_ms, now)
         elif kind == "COMMAND_ACK" and m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
             self.counters[f"interval_ack_{m.result}"] += 1
+        return True
 
     @staticmethod
     def _is_autopilot(m) -> bool:

@@ -75,6 +75,11 @@ class PoseBuffer:
         with self._lock:
             return (self._times[0], self._times[-1]) if self._times else None
 
+    def samples(self) -> list[PoseSample]:
+        """A copy of every held sample, oldest first."""
+        with self._lock:
+            return list(self._samples)
+
     def latest(self) -> PoseSample | None:
         """The newest sample."""
         with self._lock:

@@ -63,6 +63,9 @@ class Transport:
     def read(self, timeout: float) -> bytes:
         raise NotImplementedError
 
+    def accept_source(self) -> None:
+        """The last read held valid traffic from the FC (only datagram servers care)."""
+
     def write(self, data: bytes) -> None:
         raise NotImplementedError
 
@@ -77,6 +80,7 @@ class SocketTransport(Transport):
         super().__init__(endpoint)
         self.sock: socket.socket | None = None
         self.peer: tuple | None = None
+        self.last_source: tuple | None = None
         self.connect_timeout = connect_timeout
 
     @property
@@ -119,9 +123,7 @@ class SocketTransport(Transport):
                     log.warning("MAVLink TCP peer %s:%d closed the connection", *self.peer)
                     self.close()
                 return data
-            data, addr = s.recvfrom(MAX_READ)
-            if self.endpoint.kind == "udpin":
-                self.peer = addr
+            data, self.last_source = s.recvfrom(MAX_READ)
             return data
         except (BlockingIOError, InterruptedError):
             return b""
@@ -130,6 +132,14 @@ class SocketTransport(Transport):
             if self.endpoint.kind == "tcp":
                 self.close()
             return b""
+
+    def accept_source(self) -> None:
+        """udpin: reply to whoever sent the last datagram; called only once it held valid FC traffic,
+        so a stranger sending bytes to our port cannot divert our replies."""
+        if self.endpoint.kind == "udpin" and self.last_source is not None and self.last_source != self.peer:
+            if self.peer is not None:
+                log.warning("MAVLink peer moved from %s:%d to %s:%d", *self.peer, *self.last_source)
+            self.peer = self.last_source
 
     def write(self, data: bytes) -> None:
         s, peer = self.sock, self.peer
