@@ -43,6 +43,7 @@ def _between(lo, hi, unit: str = ""):
         if not lo <= v <= hi:
             return f"{v}{unit} is outside {lo}..{hi}{unit}"
         return None
+
     return check
 
 
@@ -53,6 +54,7 @@ def _each(check):
             if problem:
                 return problem
         return None
+
     return each
 
 
@@ -61,6 +63,7 @@ def _length(n: int, inner=None):
         if len(values) != n:
             return f"needs exactly {n} values, got {len(values)}"
         return _each(inner)(values) if inner else None
+
     return check
 
 
@@ -71,6 +74,7 @@ def _absolute_path(allow_empty: bool = False):
         if not v.startswith("/") or "\0" in v:
             return f"{v!r} must be an absolute path"
         return None
+
     return check
 
 
@@ -89,15 +93,17 @@ def _mavlink_connection(v: str):
     m = _MAVLINK_SERIAL.match(v)
     if m:
         return None
-    return (f"{v!r} is not a MAVLink connection string "
-            "(udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or /dev/DEVICE[,BAUD])")
+    return (
+        f"{v!r} is not a MAVLink connection string "
+        "(udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or /dev/DEVICE[,BAUD])"
+    )
 
 
 def _camera_source(v: str):
     if v == "realsense" or re.fullmatch(r"realsense:[A-Za-z0-9_-]{1,64}", v):
         return None
     if v.startswith("socket:"):
-        return _absolute_path()(v[len("socket:"):])
+        return _absolute_path()(v[len("socket:") :])
     m = re.fullmatch(r"tcp:([^:\s]+):(\d+)", v)
     if m:
         return None if _port_ok(m.group(2)) else f"port {m.group(2)} of {v!r} is outside 1..65535"
@@ -138,6 +144,7 @@ def _peer_spec(spec: str):
 def _one_of(*choices):
     def check(v):
         return None if v in choices else f"{v!r} is not one of {', '.join(choices)}"
+
     return check
 
 
@@ -156,32 +163,45 @@ class VehicleConfig:
 
     id: int = _key("MAVLink system id of this vehicle, also its id in the swarm", 1, _between(1, 255))
     mavlink: str = _key("flight-controller connection string", "udpin:0.0.0.0:14540", _mavlink_connection)
-    link_timeout_s: float = _key("no MAVLink message for this long: link lost", 1.5,
-                                 _between(0.1, 60.0, " s"))
-    odometry_timeout_s: float = _key("no odometry for this long: odometry stale, mapping pauses", 0.5,
-                                     _between(0.05, 60.0, " s"))
-    odometry_rate_hz: float = _key("odometry stream rate requested from the FC", 30.0,
-                                   _between(1.0, 500.0, " Hz"))
-    camera_mount_m: tuple[float, ...] = _key("camera position on the body (x fwd, y left, z up), metres",
-                                             (0.0, 0.0, 0.0), _length(3, _between(-10.0, 10.0, " m")))
+    link_timeout_s: float = _key(
+        "no MAVLink message for this long: link lost", 1.5, _between(0.1, 60.0, " s")
+    )
+    odometry_timeout_s: float = _key(
+        "no odometry for this long: odometry stale, mapping pauses", 0.5, _between(0.05, 60.0, " s")
+    )
+    odometry_rate_hz: float = _key(
+        "odometry stream rate requested from the FC", 30.0, _between(1.0, 500.0, " Hz")
+    )
+    camera_mount_m: tuple[float, ...] = _key(
+        "camera position on the body (x fwd, y left, z up), metres",
+        (0.0, 0.0, 0.0),
+        _length(3, _between(-10.0, 10.0, " m")),
+    )
     camera_mount_rpy_deg: tuple[float, ...] = _key(
         "camera roll, pitch, yaw relative to a forward-looking camera, degrees",
-        (0.0, 0.0, 0.0), _length(3, _between(-360.0, 360.0, " deg")))
+        (0.0, 0.0, 0.0),
+        _length(3, _between(-360.0, 360.0, " deg")),
+    )
 
 
 @dataclass(frozen=True)
 class CameraConfig:
     """[camera]: where depth frames come from."""
 
-    source: str = _key("depth source: socket:/PATH, tcp:HOST:PORT, realsense",
-                       "socket:/run/coopd/camera.sock",
-                       _camera_source)
-    stall_timeout_s: float = _key("no byte from the camera for this long: reconnect", 2.0,
-                                  _between(0.1, 60.0, " s"))
-    max_payload_bytes: int = _key("largest depth frame accepted", 8 * 1024 * 1024,
-                                  _between(1024, 256 * 1024 * 1024, " B"))
-    pose_wait_s: float = _key("a frame newer than the newest pose waits this long for odometry", 0.1,
-                              _between(0.0, 1.0, " s"))
+    source: str = _key(
+        "depth source: socket:/PATH, tcp:HOST:PORT, realsense",
+        "socket:/run/coopd/camera.sock",
+        _camera_source,
+    )
+    stall_timeout_s: float = _key(
+        "no byte from the camera for this long: reconnect", 2.0, _between(0.1, 60.0, " s")
+    )
+    max_payload_bytes: int = _key(
+        "largest depth frame accepted", 8 * 1024 * 1024, _between(1024, 256 * 1024 * 1024, " B")
+    )
+    pose_wait_s: float = _key(
+        "a frame newer than the newest pose waits this long for odometry", 0.1, _between(0.0, 1.0, " s")
+    )
 
 
 @dataclass(frozen=True)
@@ -191,16 +211,20 @@ class SharingConfig:
     enabled: bool = _key("share maps at all", True)
     listen_host: str = _key("address the map server listens on", "0.0.0.0", _ip_address)
     port: int = _key("TCP port of the map server", 7400, _between(1, 65535))
-    peers: tuple[str, ...] = _key("peers to scan: 'HOST', 'HOST:PORT', '10.42.0.1-10.42.0.20'", (),
-                                  _each(_peer_spec))
-    peer_ports: tuple[int, ...] = _key("ports scanned on peers without their own", (7400,),
-                                       _each(_between(1, 65535)))
+    peers: tuple[str, ...] = _key(
+        "peers to scan: 'HOST', 'HOST:PORT', '10.42.0.1-10.42.0.20'", (), _each(_peer_spec)
+    )
+    peer_ports: tuple[int, ...] = _key(
+        "ports scanned on peers without their own", (7400,), _each(_between(1, 65535))
+    )
     scan_period_s: float = _key("seconds between discovery scans", 2.0, _between(0.1, 3600.0, " s"))
     grace_period_s: float = _key("a peer unseen this long is dropped", 30.0, _between(1.0, 86400.0, " s"))
-    block_size: int = _key("MTP block size in bytes, same on every vehicle", 4096,
-                           _between(64, 1 << 20, " B"))
-    swarm_key_file: str = _key("file holding the shared swarm key (>= 16 bytes); empty: no key", "",
-                               _absolute_path(allow_empty=True))
+    block_size: int = _key(
+        "MTP block size in bytes, same on every vehicle", 4096, _between(64, 1 << 20, " B")
+    )
+    swarm_key_file: str = _key(
+        "file holding the shared swarm key (>= 16 bytes); empty: no key", "", _absolute_path(allow_empty=True)
+    )
     max_map_bytes: int = _key("largest received map message", 64 << 20, _between(1024, 1 << 30, " B"))
     max_map_cells: int = _key("largest received map, in cells", 100_000_000, _between(1, 400_000_000))
     relay: bool = _key("also forward maps received from others (multi-hop)", False)
@@ -224,17 +248,22 @@ class DaemonConfig:
     """[daemon]: process-wide settings."""
 
     memory_mb: int = _key("memory budget of the whole process (RSS), MiB", 512, _between(64, 1 << 20, " MiB"))
-    state_dir: str = _key("checkpoints live here (systemd StateDirectory)", "/var/lib/coopd",
-                          _absolute_path())
-    control_socket: str = _key("unix socket coopctl talks to (in the RuntimeDirectory)",
-                               DEFAULT_CONTROL_SOCKET, _absolute_path())
+    state_dir: str = _key(
+        "checkpoints live here (systemd StateDirectory)", "/var/lib/coopd", _absolute_path()
+    )
+    control_socket: str = _key(
+        "unix socket coopctl talks to (in the RuntimeDirectory)", DEFAULT_CONTROL_SOCKET, _absolute_path()
+    )
     control_max_clients: int = _key("coopctl connections served at once", 8, _between(1, 256))
-    control_timeout_s: float = _key("a coopctl request must arrive within this time", 5.0,
-                                    _between(0.1, 300.0, " s"))
-    checkpoint_period_s: float = _key("seconds between checkpoints; 0: only on shutdown", 60.0,
-                                      _between(0.0, 86400.0, " s"))
-    checkpoint_keep: int = _key("checkpoints kept per map (the newest valid one is loaded)", 3,
-                                _between(1, 100))
+    control_timeout_s: float = _key(
+        "a coopctl request must arrive within this time", 5.0, _between(0.1, 300.0, " s")
+    )
+    checkpoint_period_s: float = _key(
+        "seconds between checkpoints; 0: only on shutdown", 60.0, _between(0.0, 86400.0, " s")
+    )
+    checkpoint_keep: int = _key(
+        "checkpoints kept per map (the newest valid one is loaded)", 3, _between(1, 100)
+    )
     log_level: str = _key("debug, info, warning or error", "info", _one_of(*LOG_LEVELS))
 
 
@@ -344,8 +373,14 @@ def _join(prefix: str, name: str) -> str:
 
 
 def _type_name(value) -> str:
-    return {dict: "a table", list: "a list", str: "a string", bool: "a boolean", int: "an integer",
-            float: "a number"}.get(type(value), type(value).__name__)
+    return {
+        dict: "a table",
+        list: "a list",
+        str: "a string",
+        bool: "a boolean",
+        int: "an integer",
+        float: "a number",
+    }.get(type(value), type(value).__name__)
 
 
 def config_keys(cls=Config, prefix: str = ""):

@@ -49,9 +49,11 @@ def test_every_own_key_has_a_doc():
 
 def test_file_values_override_defaults(tmp_path):
     path = tmp_path / "c.toml"
-    path.write_text('[vehicle]\nid = 7\ncamera_mount_m = [0.1, 0, -0.05]\n[sharing]\n'
-                    'peers = ["10.42.0.1-20", "drone3:7401"]\n[mapping]\nresolution = 0.2\n'
-                    '[mapping.growth]\nmax_cells = 1000000\n')
+    path.write_text(
+        "[vehicle]\nid = 7\ncamera_mount_m = [0.1, 0, -0.05]\n[sharing]\n"
+        'peers = ["10.42.0.1-20", "drone3:7401"]\n[mapping]\nresolution = 0.2\n'
+        "[mapping.growth]\nmax_cells = 1000000\n"
+    )
     c = load_config(path)
     assert c.vehicle.id == 7 and c.vehicle.camera_mount_m == (0.1, 0.0, -0.05)
     assert c.sharing.peers == ("10.42.0.1-20", "drone3:7401")
