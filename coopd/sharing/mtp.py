@@ -26,8 +26,9 @@ PROTOCOL_VERSION = 1
 
 HEAD = struct.Struct("<BBi")
 """marker, frame type, int32 count: bytes 0-5 of every control frame."""
-HELLO_BODY = struct.Struct("<BBi16s")
-"""after HEAD (whose count is the sender's block size): protocol version, flags, vehicle id, nonce."""
+HELLO_BODY = struct.Struct("<BBi16sQ")
+"""after HEAD (whose count is the sender's block size): protocol version, flags, vehicle id,
+nonce, instance id (random per process start: a changed one means the peer lost its state)."""
 HELLO_FLAG_KEY = 0x01
 TAG_HMAC_SHA256 = 0x01
 """Stop frame byte 6: a 32-byte HMAC-SHA256 tag follows in bytes 7-38."""
@@ -52,6 +53,7 @@ class Hello:
     vehicle_id: int
     nonce: bytes
     keyed: bool
+    instance: int = 0
     version: int = PROTOCOL_VERSION
 
 
@@ -95,7 +97,7 @@ def stop_frame(blocks: int, block_size: int, tag: bytes | None = None) -> bytes:
 def hello_frame(hello: Hello) -> bytes:
     """The hello frame; its count field is the sender's block size so a mismatch shows at once."""
     flags = HELLO_FLAG_KEY if hello.keyed else 0
-    body = HELLO_BODY.pack(hello.version, flags, hello.vehicle_id, hello.nonce)
+    body = HELLO_BODY.pack(hello.version, flags, hello.vehicle_id, hello.nonce, hello.instance)
     return _control(HELLO, hello.block_size, hello.block_size, body)
 
 
@@ -128,10 +130,10 @@ def encode_transfer(message, block_size: int, tag: bytes | None = None) -> list:
 def parse_hello(frame) -> Hello:
     """A hello frame (BS bytes, already known to start with MARK, HELLO)."""
     _, _, block_size = HEAD.unpack_from(frame)
-    version, flags, vehicle_id, nonce = HELLO_BODY.unpack_from(frame, HEAD.size)
+    version, flags, vehicle_id, nonce, instance = HELLO_BODY.unpack_from(frame, HEAD.size)
     if version < 1:
         raise MtpError("frame", f"hello protocol version {version} does not exist")
-    return Hello(block_size, vehicle_id, bytes(nonce), bool(flags & HELLO_FLAG_KEY), version)
+    return Hello(block_size, vehicle_id, bytes(nonce), bool(flags & HELLO_FLAG_KEY), instance, version)
 
 
 def parse_ack(frame) -> tuple[int, int]:
@@ -187,6 +189,11 @@ class Reassembler:
     def in_transfer(self) -> bool:
         """True between a start frame and its stop frame."""
         return self._announced > 0
+
+    @property
+    def between_transfers(self) -> bool:
+        """True when nothing is half-received: no transfer open, no partial frame."""
+        return self._announced == 0 and self._state == self._HEAD and self._filled == 0
 
     @property
     def announced_bytes(self) -> int:

@@ -34,6 +34,8 @@ class PeerStats:
     last_transfer_s: float = 0.0
     last_throughput_bps: float = 0.0
     failures: Counter = field(default_factory=Counter)
+    instance: int = 0
+    """The peer daemon's instance id from its hello; a new one resets `has`."""
     has: dict = field(default_factory=dict)
     """origin vehicle id -> newest map version this peer is known to hold (sent or received)."""
 
@@ -76,6 +78,16 @@ class PeerTable:
             if connected is not None:
                 peer.connected = connected
 
+    def hello(self, vehicle_id: int, instance: int) -> bool:
+        """Record the peer's instance id; True (and `has` forgotten) if it restarted since we last met."""
+        with self._lock:
+            peer = self._get(vehicle_id)
+            restarted = peer.instance != instance
+            if restarted:
+                peer.instance = instance
+                peer.has.clear()
+            return restarted
+
     def disconnected(self, vehicle_id: int) -> None:
         with self._lock:
             if vehicle_id in self._peers:
@@ -107,7 +119,7 @@ class PeerTable:
             peer.last_transfer_s = seconds
             peer.last_throughput_bps = nbytes / seconds if seconds > 0 else 0.0
             peer.last_seen = self._clock()
-            if address:
+            if address and not peer.address:  # the server address found by discovery wins
                 peer.address = address
             self._note_has(peer, origin, version)
 
