@@ -77,7 +77,7 @@ class _Budget:
     """A byte budget shared by all reassembly buffers."""
 
     def __init__(self, limit: int):
-        self.limit, self.used = limit, 0
+        self.limit, self.used, self.peak = limit, 0, 0
         self._lock = threading.Lock()
 
     def reserve(self, n: int) -> bool:
@@ -85,6 +85,7 @@ class _Budget:
             if self.used + n > self.limit:
                 return False
             self.used += n
+            self.peak = max(self.peak, self.used)
             return True
 
     def release(self, n: int) -> None:
@@ -121,6 +122,10 @@ class MapServer:
     @property
     def inflight_bytes(self) -> int:
         return self._budget.used
+
+    @property
+    def peak_inflight_bytes(self) -> int:
+        return self._budget.peak
 
     @property
     def open_connections(self) -> int:
@@ -294,8 +299,9 @@ class _Connection:
         if hello.keyed != keyed:
             raise Rejected("auth", f"swarm key mismatch: peer key {'on' if hello.keyed else 'off'}, "
                                    f"ours {'on' if keyed else 'off'}")
-        self.server.peers.seen(hello.vehicle_id)
-        log.info("peer vehicle %d connected from %s", hello.vehicle_id, self.address)
+        if hello.vehicle_id != self.server.vehicle_id:  # our own scan reaching our own server
+            self.server.peers.seen(hello.vehicle_id)
+            log.info("peer vehicle %d connected from %s", hello.vehicle_id, self.address)
 
     def _on_transfer(self, t: Transfer, seconds: float) -> None:
         s = self.s
