@@ -43,6 +43,8 @@ class TransportSettings:
     max_inflight_bytes: int = 512 << 20
     """Reassembly buffers of all concurrent transfers together."""
     swarm_key: bytes | None = None
+    max_send_rate: float = 0.0
+    """Bytes/s per peer link, 0 = unlimited: leaves room on a shared radio for other traffic."""
 
     def __post_init__(self):
         mtp.check_block_size(self.block_size)
@@ -387,10 +389,18 @@ class PeerLink:
         t0 = time.monotonic()
         self.sock.settimeout(s.read_timeout)
         self.sock.sendall(mtp.start_frame(blocks, bs))
+        rate = s.max_send_rate
+        step = SEND_CHUNK if rate <= 0 else int(min(SEND_CHUNK, max(bs, rate / 20)))
+        sent = 0
         for chunk in mtp.data_chunks(view, bs):
             cv = memoryview(chunk)
-            for i in range(0, len(cv), SEND_CHUNK):
-                self.sock.sendall(cv[i:i + SEND_CHUNK])
+            for i in range(0, len(cv), step):
+                self.sock.sendall(cv[i:i + step])
+                sent += len(cv[i:i + step])
+                if rate > 0:
+                    ahead = sent / rate - (time.monotonic() - t0)
+                    if ahead > 0:
+                        time.sleep(ahead)
         self.sock.sendall(mtp.stop_frame(blocks, bs, tag))
         ack = self._recv_exact(bs, s.transfer_deadline(blocks * bs))
         got, status = mtp.parse_ack(ack)
