@@ -55,8 +55,8 @@ def wire_verifier(max_cells: int, max_bytes: int) -> Callable[[memoryview], None
 
     limits = wire.DecodeLimits(max_cells=max_cells, max_bytes=max_bytes)
 
-    def verify(data) -> None:
-        wire.decode_map(bytes(data), limits)
+    def verify(message: bytes) -> None:
+        wire.decode_map(message, limits)
 
     return verify
 
