@@ -29,6 +29,8 @@ class PeerStats:
     connected: bool = False
     maps_sent: int = 0
     bytes_sent: int = 0
+    redundant_sent: int = 0
+    """Transfers the peer answered 'stale' (it already held that version, e.g. from a relay)."""
     maps_received: int = 0
     bytes_received: int = 0
     last_transfer_s: float = 0.0
@@ -44,6 +46,7 @@ class PeerStats:
             "vehicle_id": self.vehicle_id, "address": self.address, "port": self.port,
             "last_seen": self.last_seen, "connected": self.connected,
             "maps_sent": self.maps_sent, "bytes_sent": self.bytes_sent,
+            "redundant_sent": self.redundant_sent,
             "maps_received": self.maps_received, "bytes_received": self.bytes_received,
             "last_transfer_s": round(self.last_transfer_s, 6),
             "last_throughput_mbit_s": round(self.last_throughput_bps * 8 / 1e6, 3),
@@ -123,10 +126,12 @@ class PeerTable:
                 peer.address = address
             self._note_has(peer, origin, version)
 
-    def peer_has(self, vehicle_id: int, origin: int, version: int) -> None:
+    def peer_has(self, vehicle_id: int, origin: int, version: int, redundant: bool = False) -> None:
         """Record that the peer holds `origin` at `version` (e.g. it answered 'stale')."""
         with self._lock:
-            self._note_has(self._get(vehicle_id), origin, version)
+            peer = self._get(vehicle_id)
+            peer.redundant_sent += int(redundant)
+            self._note_has(peer, origin, version)
 
     @staticmethod
     def _note_has(peer: PeerStats, origin: int, version: int) -> None:

@@ -302,7 +302,7 @@ class _Sender:
                     log.info("map of vehicle %d v%d sent to vehicle %d (%d bytes, %.3f s)",
                              origin, version, self.vid, len(message), seconds)
                 else:
-                    svc.peers.peer_has(self.vid, origin, version)
+                    svc.peers.peer_has(self.vid, origin, version, redundant=status == mtp.ACK_STALE)
                     if status != mtp.ACK_STALE:
                         svc.peers.failure("rejected_by_peer", self.vid)
             with svc._update:
