@@ -41,10 +41,10 @@ class PeerStats:
     has: dict = field(default_factory=dict)
     """origin vehicle id -> newest map version this peer is known to hold (sent or received)."""
 
-    def snapshot(self) -> dict:
+    def snapshot(self, now: float) -> dict:
         return {
             "vehicle_id": self.vehicle_id, "address": self.address, "port": self.port,
-            "last_seen": self.last_seen, "connected": self.connected,
+            "last_seen_ago_s": round(now - self.last_seen, 3), "connected": self.connected,
             "maps_sent": self.maps_sent, "bytes_sent": self.bytes_sent,
             "redundant_sent": self.redundant_sent,
             "maps_received": self.maps_received, "bytes_received": self.bytes_received,
@@ -171,7 +171,7 @@ class PeerTable:
         """Plain data for coopctl status."""
         with self._lock:
             return {
-                "peers": [p.snapshot() for p in self._peers.values()],
+                "peers": [p.snapshot(self._clock()) for p in self._peers.values()],
                 "unidentified_failures": {a: dict(c) for a, c in self._anonymous.items()},
             }
 
