@@ -52,16 +52,36 @@ def _expand_hosts(host: str) -> list[str]:
     return [str(ipaddress.IPv4Address(i)) for i in range(int(first), int(last) + 1)]
 
 
-def probe(targets, timeout: float) -> list[tuple[tuple[str, int], socket.socket]]:
-    """Connect to every target at once; return the connected sockets (blocking mode) within `timeout`."""
+PROBE_BATCH = 256
+"""Targets probed at once: bounds the file descriptors a scan holds."""
+
+
+def probe(targets, timeout: float, source: str | None = None) -> list[tuple[tuple[str, int], socket.socket]]:
+    """Connect to all targets (PROBE_BATCH at a time) from `source` (an address of ours, or any);
+    return the connected sockets (blocking mode)."""
+    targets = list(targets)
+    connected = []
+    for i in range(0, len(targets), PROBE_BATCH):
+        connected += _probe_batch(targets[i:i + PROBE_BATCH], timeout, source)
+    return connected
+
+
+def _probe_batch(targets, timeout: float, source: str | None) -> list[tuple[tuple[str, int], socket.socket]]:
     sel = selectors.DefaultSelector()
     pending: dict[socket.socket, tuple[str, int]] = {}
     connected = []
     try:
         for target in targets:
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            try:
+                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            except OSError as e:  # out of file descriptors: probe the rest next scan
+                log.warning("discovery: cannot open a socket (%s); %d targets left for the next scan",
+                            e, len(targets) - len(pending))
+                break
             s.setblocking(False)
             try:
+                if source:
+                    s.bind((source, 0))
                 rc = s.connect_ex(target)
             except OSError:  # e.g. an unresolvable name
                 s.close()

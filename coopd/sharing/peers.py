@@ -176,6 +176,10 @@ class PeerTable:
             }
 
 
+class StoreFull(Exception):
+    """Storing a received map would pass the store's bounds."""
+
+
 @dataclass(frozen=True)
 class StoredMap:
     """A received map at rest: serialized (compressed) bytes and what its header says."""
@@ -194,17 +198,28 @@ class ReceivedStore:
     Version 0 means 'unversioned' (thesis type-0 messages carry no version): it always replaces.
     """
 
-    def __init__(self):
+    def __init__(self, max_vehicles: int = 256, max_bytes: int = 1 << 30):
         self._lock = threading.Lock()
         self._maps: dict[int, StoredMap] = {}
+        self._bytes = 0
+        self.max_vehicles = max_vehicles
+        self.max_bytes = max_bytes
         self.changed = threading.Condition(self._lock)
 
     def offer(self, summary: MessageSummary, data: bytes, via: int | None = None) -> bool:
-        """Store the message if it is newer than what we hold for its vehicle; True if stored."""
+        """Store the message if it is newer than what we hold for its vehicle; True if stored.
+        StoreFull if holding it would pass max_vehicles or max_bytes (the memory budget)."""
         with self._lock:
             held = self._maps.get(summary.vehicle_id)
             if held is not None and summary.version != 0 and summary.version <= held.version:
                 return False
+            if held is None and len(self._maps) >= self.max_vehicles:
+                raise StoreFull(f"already holding maps of {len(self._maps)} vehicles (max_vehicles)")
+            total = self._bytes - (len(held.data) if held else 0) + len(data)
+            if total > self.max_bytes:
+                raise StoreFull(f"holding it would make {total} bytes of received maps "
+                                f"(max_received_bytes {self.max_bytes})")
+            self._bytes = total
             self._maps[summary.vehicle_id] = StoredMap(summary.vehicle_id, summary.version, data,
                                                        time.time(), via)
             self.changed.notify_all()
@@ -225,4 +240,4 @@ class ReceivedStore:
 
     def total_bytes(self) -> int:
         with self._lock:
-            return sum(len(m.data) for m in self._maps.values())
+            return self._bytes

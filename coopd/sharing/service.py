@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from . import discovery, mtp
-from .peers import MessageSummary, PeerTable, ReceivedStore
+from .peers import MessageSummary, PeerTable, ReceivedStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
 log = logging.getLogger("coopd.sharing")
@@ -38,6 +38,10 @@ class SharingConfig:
     """A peer not seen (and not connected) for this long is dropped from the table."""
     relay: bool = False
     """Also forward maps received from others (multi-hop); see docs/sharing.md."""
+    max_vehicles: int = 256
+    """Received maps of at most this many vehicles are held."""
+    max_received_bytes: int = 1 << 30
+    """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
     transport: TransportSettings = field(default_factory=TransportSettings)
 
 
@@ -72,7 +76,7 @@ class SharingService:
         self._verify = verify
         self._on_map = on_map
         self.peers = PeerTable()
-        self.received = ReceivedStore()
+        self.received = ReceivedStore(config.max_vehicles, config.max_received_bytes)
         self.arrivals: queue.Queue = queue.Queue(maxsize=64)
         """(vehicle id, version) of every stored map, for consumers that poll; oldest dropped if full."""
         self._targets = discovery.parse_targets(config.peers, config.peer_ports)
@@ -115,6 +119,8 @@ class SharingService:
     # ------------------------------------------------------------------ publishing
     def publish(self, message: bytes, version: int) -> None:
         """Offer our latest map; peers get it if `version` is newer than what they have."""
+        if version < 1:
+            raise ValueError(f"published versions start at 1, got {version}")
         with self._update:
             if self._own is not None and version < self._own[0]:
                 raise ValueError(f"version {version} is older than the published {self._own[0]}")
@@ -168,7 +174,10 @@ class SharingService:
                 self._verify(message)
             except (ValueError, MemoryError) as e:
                 raise Rejected("decode", f"map from vehicle {summary.vehicle_id}: {e}") from None
-        stored = self.received.offer(summary, message, via)
+        try:
+            stored = self.received.offer(summary, message, via)
+        except StoreFull as e:
+            raise Rejected("store_full", str(e)) from None
         self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
                             arrival.address)
         if not stored:
@@ -185,7 +194,11 @@ class SharingService:
                 pass
             self.arrivals.put_nowait((summary.vehicle_id, summary.version))
         if self._on_map is not None:
-            self._on_map(summary.vehicle_id, summary.version)
+            try:
+                self._on_map(summary.vehicle_id, summary.version)
+            except Exception:  # the map is stored; a consumer's bug must not fail the transfer
+                log.exception("on_map callback failed for vehicle %d v%d", summary.vehicle_id,
+                              summary.version)
         if self.config.relay:
             with self._update:
                 self._update.notify_all()
@@ -203,7 +216,8 @@ class SharingService:
         with self._lock:
             todo = [t for t in self._targets if t not in self._busy_targets and t not in self._self_targets]
         found = 0
-        for target, sock in discovery.probe(todo, self.config.transport.connect_timeout):
+        source = None if self.config.listen_host in ("", "0.0.0.0") else self.config.listen_host
+        for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
             with self._lock:
                 self._busy_targets.add(target)
             sender = _Sender(self, PeerLink(sock, self.config.transport, self.vehicle_id, target[0]), target)

@@ -37,6 +37,8 @@ class TransportSettings:
     min_rate: float = 128_000.0
     """Bytes/s: a transfer must finish within transfer_base_s + announced bytes / min_rate."""
     max_connections: int = 32
+    max_connections_per_address: int = 4
+    """A single host flooding connections cannot take every slot."""
     max_bytes: int = 256 << 20
     """Largest transfer (data blocks) accepted."""
     max_cells: int = 400_000_000
@@ -110,6 +112,7 @@ class MapServer:
         self._slots = threading.BoundedSemaphore(settings.max_connections)
         self._budget = _Budget(settings.max_inflight_bytes)
         self._conns: set[socket.socket] = set()
+        self._per_address: dict[str, int] = {}
         self._threads: set[threading.Thread] = set()
         self._lock = threading.Lock()
         self._accept_thread: threading.Thread | None = None
@@ -175,7 +178,10 @@ class MapServer:
                     return
                 time.sleep(0.05)
                 continue
-            if not self._slots.acquire(blocking=False):
+            with self._lock:
+                per_address = self._per_address.get(addr[0], 0)
+            if per_address >= self.settings.max_connections_per_address or \
+                    not self._slots.acquire(blocking=False):
                 self.refused_busy += 1
                 self.peers.failure("busy", address=addr[0])
                 conn.close()
@@ -184,6 +190,7 @@ class MapServer:
             with self._lock:
                 self._conns.add(conn)
                 self._threads.add(t)
+                self._per_address[addr[0]] = per_address + 1
             t.start()
 
     def _serve(self, conn: socket.socket, addr) -> None:
@@ -194,6 +201,9 @@ class MapServer:
             with self._lock:
                 self._conns.discard(conn)
                 self._threads.discard(threading.current_thread())
+                left = self._per_address.pop(addr[0], 1) - 1
+                if left > 0:
+                    self._per_address[addr[0]] = left
             self._slots.release()
 
 
@@ -227,6 +237,9 @@ class _Connection:
             cause, detail = "timeout", str(e) or "read timed out"
         except OSError as e:
             cause, detail = "cut", f"connection error: {e}"
+        except Exception as e:  # a bug in a callback must cost one transfer, not the server
+            log.exception("internal error while receiving from %s", self.address)
+            cause, detail = "internal", repr(e)
         finally:
             self.reasm.close()
         if cause is not None:
@@ -343,8 +356,10 @@ class PeerLink:
         self.seq = 0
 
     @classmethod
-    def connect(cls, host: str, port: int, settings: TransportSettings, vehicle_id: int) -> "PeerLink":
-        sock = socket.create_connection((host, port), timeout=settings.connect_timeout)
+    def connect(cls, host: str, port: int, settings: TransportSettings, vehicle_id: int,
+                source: str | None = None) -> "PeerLink":
+        sock = socket.create_connection((host, port), timeout=settings.connect_timeout,
+                                        source_address=(source, 0) if source else None)
         link = cls(sock, settings, vehicle_id, host)
         try:
             link.handshake()

@@ -174,3 +174,57 @@ def test_replayed_keyed_transfer_is_refused(services):
         s.sendall(bytes(rec.sent))
         assert wait_until(lambda: failures(a).get("auth", 0) == 1, 5), failures(a)
     assert a.received.all() == []
+
+
+def test_received_store_is_bounded(services):
+    a = services(1)
+    a.received.max_vehicles = 2
+    link = link_to(a, vid=4)
+    assert link.send_map(tm.make(4, 1, b"x"))[0] == mtp.ACK_OK
+    assert link.send_map(tm.make(5, 1, b"y"))[0] == mtp.ACK_OK
+    assert link.send_map(tm.make(6, 1, b"z"))[0] == mtp.ACK_REJECTED
+    link.close()
+    a.received.max_bytes = a.received.total_bytes() + 10
+    link = link_to(a, vid=4)
+    assert link.send_map(tm.make(4, 2, b"x" * 100))[0] == mtp.ACK_REJECTED
+    link.close()
+    assert sorted((m.vehicle_id, m.version) for m in a.received.all()) == [(4, 1), (5, 1)]
+    assert wait_until(lambda: failures(a).get("store_full") == 2, 3), failures(a)
+
+
+def test_publish_needs_increasing_positive_versions(services):
+    a = services(1)
+    with pytest.raises(ValueError):
+        a.publish(tm.make(1, 0, b""), 0)
+    a.publish(tm.make(1, 3, b""), 3)
+    with pytest.raises(ValueError):
+        a.publish(tm.make(1, 2, b""), 2)
+
+
+def test_a_failing_consumer_does_not_fail_the_transfer(services):
+    a = services(1)
+    calls = []
+
+    def broken(vid, version):
+        calls.append(vid)
+        raise RuntimeError("consumer bug")
+
+    a._on_map = broken
+    link = link_to(a, vid=4)
+    assert link.send_map(tm.make(4, 1, b"x"))[0] == mtp.ACK_OK
+    link.close()
+    assert calls == [4] and a.received.version(4) == 1
+
+
+def test_a_bug_in_inspect_costs_one_transfer_not_the_server(services):
+    a = services(1)
+    a._inspect = lambda data: 1 / 0
+    link = link_to(a, vid=4)
+    with pytest.raises((OSError, MtpError)):
+        link.send_map(tm.make(4, 1, b"x"))
+    link.close()
+    assert wait_until(lambda: failures(a).get("internal") == 1, 3)
+    a._inspect = tm.inspect
+    link = link_to(a, vid=4)
+    assert link.send_map(tm.make(4, 2, b"y"))[0] == mtp.ACK_OK
+    link.close()

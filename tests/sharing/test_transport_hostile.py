@@ -30,14 +30,15 @@ def server():
         svc.stop()
 
 
-def good_peer_delivers(svc, vid: int, version: int, within: float = 5.0) -> float:
-    """A well-behaved peer sends a map (retrying refused connections); returns seconds taken."""
+def good_peer_delivers(svc, vid: int, version: int, within: float = 5.0, source: str = "127.0.0.2") -> float:
+    """A well-behaved peer (on its own address) sends a map, retrying refused connections;
+    returns seconds taken."""
     t0 = time.monotonic()
     host, port = svc.address
     last = None
     while time.monotonic() - t0 < within:
         try:
-            link = PeerLink.connect(host, port, settings(), vid)
+            link = PeerLink.connect(host, port, settings(), vid, source=source)
             try:
                 status, _ = link.send_map(tm.make(vid, version, b"good" * 100))
             finally:
@@ -122,9 +123,10 @@ def test_connection_flood_leaves_room_for_good_peers_and_bounded_threads(server)
     base_threads = threading.active_count()
     flood = []
     try:
-        for _ in range(60):
+        for k in range(60):  # a distributed flood: 20 addresses, 3 connections each
             try:
-                flood.append(socket.create_connection(svc.address, timeout=1))
+                flood.append(socket.create_connection(svc.address, timeout=1,
+                                                      source_address=(f"127.0.1.{10 + k % 20}", 0)))
             except OSError:
                 break
         time.sleep(0.1)
@@ -155,3 +157,15 @@ def test_concurrent_transfers_share_a_bounded_byte_budget(server):
     assert wait_until(lambda: svc._server.inflight_bytes == 0, 3)
     assert failures(svc).get("cut") == 2
     good_peer_delivers(svc, 5, 1)
+
+
+def test_one_address_cannot_take_every_slot(server):
+    svc = server(max_connections=8, max_connections_per_address=3, handshake_timeout=2.0)
+    flood = [socket.create_connection(svc.address, timeout=1) for _ in range(10)]
+    try:
+        time.sleep(0.2)
+        assert svc._server.open_connections == 3
+        assert good_peer_delivers(svc, 5, 1, within=2) < 1  # from another address: served at once
+    finally:
+        for s in flood:
+            s.close()
