@@ -64,6 +64,8 @@ class Transfer:
     data: memoryview
     blocks: int
     tag: bytes | None
+    buffer: bytearray | None = None
+    """The buffer `data` views: lets the receiver keep the message without copying it."""
 
 
 def check_block_size(block_size: int) -> int:
@@ -314,7 +316,7 @@ class Reassembler:
         if not (self._count == self._announced == self._received_blocks):
             self._fail("count", f"start announced {self._announced} blocks, stop says {self._count}, "
                                 f"received {self._received_blocks}")
-        transfer = Transfer(memoryview(self._data), self._announced, tag)
+        transfer = Transfer(memoryview(self._data), self._announced, tag, self._data)
         self._data = None
         self._announced = 0
         if self._reserved and self._release is not None:

@@ -186,7 +186,7 @@ class StoredMap:
 
     vehicle_id: int
     version: int
-    data: bytes
+    data: bytes | bytearray
     received_at: float
     via: int | None
     """Vehicle id of the peer that delivered it (differs from vehicle_id for relayed maps)."""
@@ -206,7 +206,7 @@ class ReceivedStore:
         self.max_bytes = max_bytes
         self.changed = threading.Condition(self._lock)
 
-    def offer(self, summary: MessageSummary, data: bytes, via: int | None = None) -> bool:
+    def offer(self, summary: MessageSummary, data: bytes | bytearray, via: int | None = None) -> bool:
         """Store the message if it is newer than what we hold for its vehicle; True if stored.
         StoreFull if holding it would pass max_vehicles or max_bytes (the memory budget)."""
         with self._lock:

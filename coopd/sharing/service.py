@@ -168,7 +168,8 @@ class SharingService:
             self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
                                 arrival.address)
             return mtp.ACK_STALE
-        message = bytes(data[:summary.size])
+        del data
+        message = arrival.take(summary.size)
         if self._verify is not None:
             try:
                 self._verify(message)

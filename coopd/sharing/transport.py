@@ -75,6 +75,19 @@ class Arrival:
     """From the connection hello; None for thesis-format peers (no hello)."""
     address: str
     seconds: float
+    buffer: bytearray | None = None
+
+    def take(self, size: int) -> bytes | bytearray:
+        """The first `size` bytes as an object of their own, without a copy when possible."""
+        buf = self.buffer
+        if buf is not None:
+            try:
+                self.data.release()
+                del buf[size:]  # shrinks in place; refused while other views of it are alive
+                return buf
+            except (BufferError, ValueError):
+                pass
+        return bytes(memoryview(buf if buf is not None else self.data)[:size])
 
 
 class _Budget:
@@ -328,7 +341,8 @@ class _Connection:
                 self._ack(t.blocks, mtp.ACK_REJECTED)
                 raise Rejected("auth", "missing or invalid HMAC tag" if t.tag else "transfer has no HMAC tag")
         try:
-            status = self.server._accept(Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds))
+            status = self.server._accept(Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds,
+                                                 t.buffer))
         except Rejected:
             self._ack(t.blocks, mtp.ACK_REJECTED)
             raise
