@@ -1,0 +1,106 @@
+"""coopd: the cooperative mapping daemon (`coopd --config /etc/coopd/coopd.toml`).
+
+Logs go to stderr (journald under systemd). Exit codes: 0 stopped by SIGTERM/SIGINT (final
+checkpoint written), 1 could not start (control socket in use, port taken, camera missing),
+2 bad command line or configuration (the message names the key).
+"""
+
+import argparse
+import logging
+import sys
+
+from coopd.daemon.config import DEFAULT_CONFIG_PATH, ConfigError, as_dict, from_dict, load_config
+
+log = logging.getLogger("coopd.daemon")
+
+EXIT_OK, EXIT_START_FAILED, EXIT_CONFIG = 0, 1, 2
+
+OVERRIDES = (
+    # (option, dest, type, config section, key, help)
+    ("--vehicle-id", "vehicle_id", int, "vehicle", "id", "MAVLink system id / swarm id"),
+    ("--mavlink", "mavlink", str, "vehicle", "mavlink", "flight-controller connection string"),
+    ("--camera", "camera", str, "camera", "source", "depth source (socket:/PATH, tcp:HOST:PORT, realsense)"),
+    ("--sharing-port", "sharing_port", int, "sharing", "port", "TCP port of the map server"),
+    ("--listen-host", "listen_host", str, "sharing", "listen_host", "address the map server listens on"),
+    ("--state-dir", "state_dir", str, "daemon", "state_dir", "checkpoint directory"),
+    ("--control-socket", "control_socket", str, "daemon", "control_socket", "coopctl's unix socket"),
+    ("--memory-mb", "memory_mb", int, "daemon", "memory_mb", "memory budget of the process, MiB"),
+    ("--checkpoint-period", "checkpoint_period_s", float, "daemon", "checkpoint_period_s",
+     "seconds between checkpoints (0: only on stop)"),
+    ("--log-level", "log_level", str, "daemon", "log_level", "debug, info, warning or error"),
+)
+
+
+def parse_args(argv) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="coopd", description="Cooperative 3D occupancy mapping daemon.")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help=f"TOML file ({DEFAULT_CONFIG_PATH})")
+    p.add_argument("--no-config", action="store_true", help="start from the built-in defaults, no file")
+    for option, dest, kind, section, key, text in OVERRIDES:
+        p.add_argument(option, dest=dest, type=kind, default=None, help=f"{text} (overrides {section}.{key})")
+    p.add_argument("--peer", dest="peers", action="append", default=None, metavar="HOST[:PORT]",
+                   help="peer to scan, repeatable (replaces sharing.peers)")
+    p.add_argument("--no-sharing", action="store_true", help="sharing.enabled = false")
+    p.add_argument("--check-config", action="store_true", help="validate the configuration and exit")
+    return p.parse_args(argv)
+
+
+def build_config(args: argparse.Namespace):
+    """The file's configuration with the command-line overrides applied (validated as one)."""
+    table = as_dict(from_dict({}) if args.no_config else load_config(args.config))
+    for _, dest, _, section, key, _ in OVERRIDES:
+        value = getattr(args, dest)
+        if value is not None:
+            table[section][key] = value
+    if args.peers is not None:
+        table["sharing"]["peers"] = args.peers
+    if args.no_sharing:
+        table["sharing"]["enabled"] = False
+    return from_dict(table)
+
+
+def setup_logging(level: str) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if sys.stderr.isatty():
+        fmt = "%(asctime)s " + fmt
+    handler.setFormatter(logging.Formatter(fmt))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+
+
+def main(argv=None) -> int:
+    """Entry point of the coopd script; returns the exit code."""
+    args = parse_args(argv)
+    try:
+        config = build_config(args)
+    except (ConfigError, OSError) as e:
+        print(f"coopd: configuration: {e}", file=sys.stderr)
+        return EXIT_CONFIG
+    if args.check_config:
+        print(f"coopd: configuration OK (vehicle {config.vehicle.id})")
+        return EXIT_OK
+    setup_logging(config.daemon.log_level)
+
+    from coopd.daemon.service import Daemon, StartupError, install_signal_handlers
+
+    try:
+        daemon = Daemon(config)
+    except (OSError, ValueError, RuntimeError) as e:
+        log.error("cannot start: %s", e)
+        return EXIT_START_FAILED
+    install_signal_handlers(daemon)
+    try:
+        daemon.start()
+    except (StartupError, OSError) as e:
+        log.error("cannot start: %s", e)
+        daemon.request_stop("start failed")
+        daemon.shutdown()
+        return EXIT_START_FAILED
+    daemon.run()
+    daemon.shutdown()
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,237 @@
+"""The merging thread: local + received maps -> the global map and the other vehicles' offsets.
+
+Runs at low priority (nice +10), one merge at a time, triggered by a received map (on_receive),
+by the period and by `coopctl merge-now`. Received maps rest compressed in the sharing store and
+are decompressed only inside a merge, under a "merge-scratch" reservation of the memory budget;
+a merge that would not fit is deferred and reported, never half-done.
+
+The registration itself is coopd.merging.merge_all(reference, others, params); until a build has
+it, the global map is the local map fused with nothing and every merge request answers
+"merging: not available in this build".
+"""
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from coopd.daemon.budget import BudgetExceeded, MemoryBudget
+from coopd.grid import OccupancyGrid, fuse_transformed
+from coopd.sharing.wire import DEFAULT_LIMITS, DecodeLimits, MapMeta, decode_map, peek
+
+log = logging.getLogger("coopd.daemon")
+
+NOT_AVAILABLE = "merging: not available in this build"
+
+
+def find_merge_all() -> Callable | None:
+    """coopd.merging.merge_all when this build has it, else None."""
+    try:
+        from coopd.merging import merge_all
+    except ImportError:
+        return None
+    return merge_all
+
+
+def per_vehicle(result) -> dict:
+    """merge_all's outcome per vehicle id: objects with `transform` (4x4), `accepted`, `score`."""
+    return dict(result.vehicles)
+
+
+def offset_summary(transform) -> dict:
+    """A transform as an operator reads it: translation in metres and yaw in degrees."""
+    t = np.asarray(transform, dtype=np.float64)
+    return {
+        "translation_m": [round(float(v), 3) for v in t[:3, 3]],
+        "yaw_deg": round(math.degrees(math.atan2(t[1, 0], t[0, 0])), 2),
+        "transform": [round(float(v), 6) for v in t.reshape(-1)],
+    }
+
+
+class Merger:
+    """Owns the global map and the merge counters; run() is the merging thread's loop."""
+
+    def __init__(
+        self,
+        vehicle_id: int,
+        local_snapshot: Callable[[], tuple[OccupancyGrid, int]],
+        received_maps: Callable[[], list],
+        budget: MemoryBudget,
+        period_s: float,
+        enabled: bool = True,
+        merge_fn: Callable | None = None,
+        params=None,
+        limits: DecodeLimits = DEFAULT_LIMITS,
+    ):
+        self.vehicle_id = vehicle_id
+        self.local_snapshot = local_snapshot
+        self.received_maps = received_maps
+        self.budget = budget
+        self.period_s = period_s
+        self.enabled = enabled
+        self.merge_fn = merge_fn
+        self.params = params
+        self.limits = limits
+        self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0}
+        self.last: dict | None = None
+        self.offsets: dict[int, dict] = {}
+        self._global: tuple[OccupancyGrid, MapMeta] | None = None
+        self._cv = threading.Condition()
+        self._requested = 0
+        self._completed = 0
+        self._reasons: list[str] = []
+        self._stop = threading.Event()
+        self.busy_since: float | None = None
+
+    @property
+    def available(self) -> bool:
+        return self.merge_fn is not None
+
+    # ------------------------------------------------------------------------------- requests
+    def request(self, reason: str) -> int:
+        """Ask for a merge (non-blocking); returns the request number."""
+        with self._cv:
+            self._requested += 1
+            if len(self._reasons) < 16:
+                self._reasons.append(reason)
+            self._cv.notify_all()
+            return self._requested
+
+    def merge_now(self, timeout_s: float) -> dict:
+        """Request a merge and wait for its outcome (coopctl merge-now)."""
+        if not self.enabled:
+            return {"outcome": "failed", "detail": "merging is disabled in the configuration"}
+        if not self.available:
+            return {"outcome": "failed", "detail": NOT_AVAILABLE}
+        ticket = self.request("merge-now")
+        with self._cv:
+            done = self._cv.wait_for(lambda: self._completed >= ticket or self._stop.is_set(), timeout_s)
+            if not done or self.last is None:
+                return {"outcome": "queued", "detail": f"merge still running after {timeout_s:.0f} s"}
+            return {k: self.last[k] for k in ("outcome", "detail", "seconds")}
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._cv:
+            self._cv.notify_all()
+
+    # ----------------------------------------------------------------------------------- loop
+    def run(self) -> None:
+        """Merge on request and every period_s until stopped."""
+        next_periodic = time.monotonic() + self.period_s
+        while not self._stop.is_set():
+            with self._cv:
+                self._cv.wait_for(
+                    lambda: self._requested > self._completed or self._stop.is_set(),
+                    max(0.0, next_periodic - time.monotonic()),
+                )
+                if self._stop.is_set():
+                    return
+                ticket = self._requested
+                reasons, self._reasons = self._reasons or ["period"], []
+            if time.monotonic() >= next_periodic:
+                next_periodic = time.monotonic() + self.period_s
+            if self.enabled and self.available:
+                self.merge_once(",".join(sorted(set(reasons))))
+            with self._cv:
+                self._completed = max(self._completed, ticket)
+                self._cv.notify_all()
+
+    def merge_once(self, reason: str = "request") -> dict:
+        """One merge of the local map with every received map; returns and records the outcome."""
+        t0 = time.monotonic()
+        self.busy_since = t0
+        try:
+            outcome, detail = self._merge()
+        except Exception as e:  # a merging bug must never take the daemon down
+            log.exception("merge failed")
+            outcome, detail = "failed", f"{type(e).__name__}: {e}"
+        finally:
+            self.busy_since = None
+        seconds = time.monotonic() - t0
+        key = "nothing_to_merge" if outcome == "nothing" else outcome
+        self.counters[key] += 1
+        self.last = {
+            "outcome": "done" if outcome == "nothing" else outcome,
+            "detail": detail,
+            "reason": reason,
+            "seconds": round(seconds, 3),
+            "at": time.time(),
+        }
+        log_fn = log.warning if outcome in ("failed", "deferred") else log.info
+        log_fn("merge (%s) %s in %.2f s: %s", reason, outcome, seconds, detail)
+        return self.last
+
+    def _merge(self) -> tuple[str, str]:
+        stored = self.received_maps()
+        if not stored:
+            self._set_global(None)
+            return "nothing", "no received maps: the global map is the local map"
+        infos = [(m, peek(m.data)) for m in stored]
+        for _, info in infos:
+            info.check(self.limits)
+        local_grid, local_version = self.local_snapshot()
+        received_cells = sum(info.cells for _, info in infos)
+        # decoded received maps + the growing global map (at most local + all received moved in)
+        need = received_cells + local_grid.size + received_cells
+        try:
+            with self.budget.scratch("merge-scratch", need):
+                others = {m.vehicle_id: decode_map(m.data, self.limits)[0] for m, _ in infos}
+                result = self.merge_fn(local_grid, others, self.params)
+                merged = local_grid
+                offsets, accepted = {}, []
+                for vid, entry in per_vehicle(result).items():
+                    if vid not in others:
+                        continue
+                    offsets[vid] = {
+                        "accepted": bool(entry.accepted),
+                        "score": round(float(entry.score), 4),
+                        **offset_summary(entry.transform),
+                    }
+                    if entry.accepted:
+                        fuse_transformed(merged, others[vid], np.asarray(entry.transform, dtype=np.float64))
+                        accepted.append(vid)
+                del others
+        except BudgetExceeded as e:
+            return "deferred", f"over the memory budget: {e}"
+        if not self.budget.reserve("global", merged.size):
+            return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
+        self.offsets = offsets
+        version = (self._global[1].version + 1) if self._global is not None else 1
+        self._set_global((merged, MapMeta(self.vehicle_id, version, time.time())))
+        return "done", (
+            f"{len(accepted)} of {len(infos)} received maps fused (local v{local_version}); "
+            f"global {'x'.join(map(str, merged.shape))} cells"
+        )
+
+    def _set_global(self, value) -> None:
+        with self._cv:
+            self._global = value
+        if value is None:
+            self.budget.release("global")
+
+    # ---------------------------------------------------------------------------------- reads
+    def global_map(self) -> tuple[OccupancyGrid, MapMeta] | None:
+        """The last merged global map, or None (then the global map is the local map)."""
+        with self._cv:
+            return self._global
+
+    def status(self) -> dict:
+        if not self.enabled:
+            state = "disabled in the configuration"
+        elif not self.available:
+            state = NOT_AVAILABLE
+        else:
+            state = "merging" if self.busy_since is not None else "idle"
+        return {
+            "available": self.available,
+            "enabled": self.enabled,
+            "state": state,
+            **self.counters,
+            "last": self.last,
+            "offsets": {str(k): v for k, v in self.offsets.items()},
+            "global_version": None if self._global is None else self._global[1].version,
+        }

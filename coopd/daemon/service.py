@@ -1,0 +1,552 @@
+"""The Daemon: owns every stage of one vehicle's coopd and the threads that run them.
+
+    daemon = Daemon(load_config(path)); daemon.start(); daemon.run(); daemon.shutdown()
+
+| thread          | role (nice) | loop                                                         |
+|-----------------|-------------|--------------------------------------------------------------|
+| coopd-mavlink   | mavlink -5  | VehicleLink.run: FC link -> pose buffer                      |
+| coopd-camera    | camera -3   | depth source -> LatestSlot (newest wins, drops counted)      |
+| coopd-mapping   | mapping -3  | newest frame + interpolated pose -> local grid               |
+| coopd-sharing   | sharing 0   | starts the sharing service (its threads inherit), publishes |
+| coopd-merging   | merging +10 | Merger.run: local + received -> global map                   |
+| coopd-control   | control 0   | ControlServer: coopctl                                       |
+| main            | -           | run(): checkpoints, memory ledger, sd_notify STATUS, health  |
+| coopd-watchdog  | -           | WATCHDOG=1 while the main loop and mapping thread are alive  |
+"""
+
+import json
+import logging
+import os
+import signal
+import threading
+import time
+from collections import deque
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from coopd.camera import LatestSlot, RealSenseSource, SocketDepthSource, SocketSourceConfig
+from coopd.daemon.budget import MemoryBudget
+from coopd.daemon.checkpoint import CheckpointStore
+from coopd.daemon.config import Config
+from coopd.daemon.control import BlobReply, CommandFailed, ControlServer
+from coopd.daemon.merger import Merger, find_merge_all
+from coopd.daemon.notify import Notifier, WatchdogPinger
+from coopd.daemon.threads import ThreadPriorities
+from coopd.geometry import euler_to_matrix, matrix_to_quat
+from coopd.grid import OccupancyGrid
+from coopd.io.atomic import write_atomic
+from coopd.mapping import CameraMount, FrameRejected, Intrinsics, Mapper, Pose
+from coopd.mapping.association import FrameAssociator
+from coopd.sharing.peers import MessageSummary
+from coopd.sharing.service import SharingConfig as ServiceSharingConfig
+from coopd.sharing.service import SharingService, wire_verifier
+from coopd.sharing.transport import TransportSettings
+from coopd.sharing.wire import DecodeLimits, MapMeta, encode_map
+from coopd.vehicle import LinkConfig, VehicleLink
+
+from . import status as status_report
+
+log = logging.getLogger("coopd.daemon")
+
+FRAME_FILE = "map-frame.json"
+"""The map frame's origin in the FC's local frame, kept next to the checkpoints so a restarted
+daemon continues the same map frame (the first odometry sample after a restart is elsewhere)."""
+MAIN_PERIOD_S = 0.2
+STATUS_PERIOD_S = 5.0
+PUBLISH_PERIOD_S = 1.0
+HEALTH_MAX_AGE_S = 3.0
+"""The main loop and the mapping thread must have looped within this time for WATCHDOG=1."""
+LATENCY_WINDOW = 2000
+MERGE_NOW_TIMEOUT_S = 100.0
+SHUTDOWN_JOIN_S = 2.0
+FROM_BUILD = "from-build"
+"""Daemon(merge_fn=FROM_BUILD): coopd.merging.merge_all if this build has it (None: not available)."""
+
+
+class StartupError(RuntimeError):
+    """The daemon cannot start (socket in use, camera module missing, ...); the message says why."""
+
+
+# ------------------------------------------------------------------------------ config adapters
+def link_config(config: Config) -> LinkConfig:
+    v = config.vehicle
+    return LinkConfig(
+        connection=v.mavlink,
+        source_system=v.id,
+        target_system=v.id,
+        odometry_rate_hz=v.odometry_rate_hz,
+        link_timeout_s=max(v.link_timeout_s, v.odometry_timeout_s),
+        odometry_timeout_s=v.odometry_timeout_s,
+    )
+
+
+def camera_mount(config: Config) -> CameraMount:
+    roll, pitch, yaw = np.radians(config.vehicle.camera_mount_rpy_deg)
+    return CameraMount(
+        np.array(config.vehicle.camera_mount_m, dtype=np.float64),
+        matrix_to_quat(euler_to_matrix(roll, pitch, yaw)),
+    )
+
+
+def local_grid_cap(config: Config, budget: MemoryBudget) -> int:
+    """Cells the local grid may grow to: a quarter of the grid budget (the local map, its snapshot
+    for sharing/checkpoints, the global map and merge scratch must all fit), within the config's cap."""
+    return min(config.mapping.growth.max_cells, max(budget.grid_budget // 4, 1))
+
+
+def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig:
+    s = config.sharing
+    key = None
+    if s.swarm_key_file:
+        try:
+            with open(s.swarm_key_file, "rb") as f:
+                key = f.read(4096).strip()
+        except OSError as e:
+            raise StartupError(f"sharing.swarm_key_file: cannot read {s.swarm_key_file}: {e}") from e
+        if len(key) < 16:
+            raise StartupError(f"sharing.swarm_key_file: {s.swarm_key_file} holds fewer than 16 bytes")
+    transport = TransportSettings(
+        block_size=s.block_size,
+        max_bytes=s.max_map_bytes,
+        max_cells=s.max_map_cells,
+        swarm_key=key,
+    )
+    return ServiceSharingConfig(
+        vehicle_id=config.vehicle.id,
+        listen_host=s.listen_host,
+        port=s.port,
+        peers=s.peers,
+        peer_ports=s.peer_ports,
+        scan_period=s.scan_period_s,
+        grace_period=s.grace_period_s,
+        relay=s.relay,
+        max_received_bytes=max(budget.grid_budget // 4, 1),
+        transport=transport,
+    )
+
+
+# ------------------------------------------------------------------------------------ the daemon
+class Daemon:
+    """One vehicle's coopd: the stages, their threads, persistence, control and health."""
+
+    def __init__(self, config: Config, notifier: Notifier | None = None, merge_fn=FROM_BUILD):
+        self.config = config
+        self.vehicle_id = config.vehicle.id
+        self.pid = os.getpid()
+        self.started = time.monotonic()
+        self.state = "starting"
+        self.notifier = notifier if notifier is not None else Notifier()
+        self.budget = MemoryBudget.from_mb(config.daemon.memory_mb)
+        self.priorities = ThreadPriorities()
+        self.state_dir = Path(config.daemon.state_dir)
+        self.store = CheckpointStore(self.state_dir, keep=config.daemon.checkpoint_keep)
+        self.link = VehicleLink(link_config(config))
+        self.slot: LatestSlot = LatestSlot()
+        self.camera = self._make_camera()
+        self.associator = FrameAssociator(self.link, camera_mount(config), config.camera.pose_wait_s)
+        self.mapper = self._make_mapper()
+        self.latency_s: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self.frames_mapped = 0
+        self.sharing = (
+            SharingService(
+                sharing_config(config, self.budget),
+                verify=wire_verifier(config.sharing.max_map_cells, config.sharing.max_map_bytes),
+                on_map=self._on_map_received,
+            )
+            if config.sharing.enabled
+            else None
+        )
+        self.merger = Merger(
+            self.vehicle_id,
+            self.mapper.snapshot,
+            self._received_maps,
+            self.budget,
+            config.merging.period_s,
+            enabled=config.merging.enabled,
+            merge_fn=find_merge_all() if merge_fn is FROM_BUILD else merge_fn,
+            limits=DecodeLimits(config.sharing.max_map_cells, config.sharing.max_map_bytes),
+        )
+        self.control = ControlServer(
+            config.daemon.control_socket,
+            {
+                "status": self.handle_status,
+                "peers": self.handle_peers,
+                "merge-now": self.handle_merge_now,
+                "dump-map": self.handle_dump_map,
+            },
+            max_clients=config.daemon.control_max_clients,
+            timeout_s=config.daemon.control_timeout_s,
+        )
+        self.control.on_thread_start = lambda: self.priorities.apply("control")
+        self.watchdog = WatchdogPinger(self.notifier, self.healthy)
+        self._stop = threading.Event()
+        self._sharing_error: str | None = None
+        self.stop_reason = ""
+        self._threads: list[threading.Thread] = []
+        self._beats = {"main": time.monotonic(), "mapping": time.monotonic()}
+        self._local_message: tuple[int, bytes] | None = None
+        self._message_lock = threading.Lock()
+        self._published_version = 0
+        self._saved_versions: dict[str, int] = {}
+        self._origin_saved = self.link.odometry.origin_enu is not None
+        self._next_checkpoint = time.monotonic() + (config.daemon.checkpoint_period_s or float("inf"))
+        self._next_status = 0.0
+
+    # ------------------------------------------------------------------------------ building
+    def _make_camera(self):
+        source = self.config.camera.source
+        if source.startswith("realsense"):
+            serial = source.partition(":")[2] or None
+            return RealSenseSource(self._local_to_fc, self.slot, serial=serial)
+        address = source[len("socket:") :] if source.startswith("socket:") else source
+        cfg = SocketSourceConfig(
+            address=address,
+            max_payload_bytes=self.config.camera.max_payload_bytes,
+            stall_timeout_s=self.config.camera.stall_timeout_s,
+        )
+        return SocketDepthSource(cfg, self.slot)
+
+    def _local_to_fc(self, local_s: float) -> float | None:
+        est = self.link.clock.estimate()
+        return None if est is None else est.fc_time(local_s)
+
+    def _make_mapper(self) -> Mapper:
+        """A Mapper on the newest valid local checkpoint (and its map frame), or on an empty grid."""
+        cfg = self.config.mapping
+        cap = local_grid_cap(self.config, self.budget)
+        if cap < 40 * 40 * 20:
+            log.error(
+                "memory budget of %d MiB leaves %.1f MiB for grids: the local map cannot grow",
+                self.config.daemon.memory_mb,
+                self.budget.grid_budget / 2**20,
+            )
+            cap = 40 * 40 * 20
+        cfg = replace(cfg, growth=replace(cfg.growth, max_cells=cap))
+        grid, version = None, 0
+        cp = self.store.load_latest("local")
+        origin = self._load_origin()
+        if cp is not None:
+            problem = None
+            if abs(cp.grid.resolution - cfg.resolution) > 1e-9:
+                problem = f"resolution {cp.grid.resolution} m is not mapping.resolution {cfg.resolution}"
+            elif cp.meta.vehicle_id != self.vehicle_id:
+                problem = f"it belongs to vehicle {cp.meta.vehicle_id}, we are {self.vehicle_id}"
+            elif cp.grid.size > cap:
+                problem = f"{cp.grid.size} cells exceed the local map's budget of {cap} cells"
+            elif origin is None:
+                problem = f"its map frame ({FRAME_FILE}) is missing"
+            if problem:
+                log.error("checkpoint %s not resumed: %s; starting an empty map", cp.path.name, problem)
+            else:
+                grid = OccupancyGrid(cp.grid.cells, cfg.resolution, cp.grid.offset, cfg.growth)
+                version = cp.meta.version
+                self.link.odometry.origin_enu = origin
+                log.info(
+                    "local map resumed from %s: version %d, %d known cells, origin FC ENU (%.3f, %.3f, %.3f)",
+                    cp.path.name,
+                    version,
+                    grid.counts().known,
+                    *origin,
+                )
+        mapper = Mapper(cfg, grid)
+        mapper.version = version
+        self.budget.reserve("local", mapper.grid.size)
+        return mapper
+
+    def _load_origin(self) -> np.ndarray | None:
+        path = self.state_dir / FRAME_FILE
+        try:
+            with open(path, "rb") as f:
+                data = json.loads(f.read(4096))
+            origin = np.array(data["origin_fc_enu"], dtype=np.float64)
+            if data.get("vehicle_id") != self.vehicle_id or origin.shape != (3,):
+                raise ValueError("wrong vehicle or shape")
+            if not np.all(np.isfinite(origin)) or np.abs(origin).max() > 1e6:
+                raise ValueError("not a finite position")
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log.error("map frame file %s unusable (%s): ignored", path, e)
+            return None
+        return origin
+
+    def _save_origin(self) -> None:
+        origin = self.link.odometry.origin_enu
+        if origin is None or self._origin_saved:
+            return
+        data = json.dumps({"vehicle_id": self.vehicle_id, "origin_fc_enu": [float(v) for v in origin]})
+        try:
+            write_atomic(self.state_dir / FRAME_FILE, data.encode())
+        except OSError as e:
+            log.error("cannot save the map frame to %s: %s", self.state_dir / FRAME_FILE, e)
+            return
+        self._origin_saved = True
+
+    # ----------------------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        """Warm the kernels, resume received maps, start every thread, then READY=1."""
+        self.notifier.extend_timeout(90)
+        self._warm_up()
+        self._remove_stray_temp_files()
+        try:
+            self.control.start()
+        except (OSError, RuntimeError) as e:
+            raise StartupError(f"control socket {self.config.daemon.control_socket}: {e}") from e
+        self._spawn("coopd-mavlink", "mavlink", self.link.run)
+        if isinstance(self.camera, RealSenseSource):
+            try:
+                self.camera.open()
+            except RuntimeError as e:
+                raise StartupError(f"camera.source {self.config.camera.source}: {e}") from e
+        self._spawn("coopd-camera", "camera", self.camera.run)
+        self._spawn("coopd-mapping", "mapping", self._mapping_loop)
+        if self.sharing is not None:
+            started = threading.Event()
+            self._spawn("coopd-sharing", "sharing", lambda: self._sharing_loop(started))
+            if not started.wait(10.0) or self._sharing_error is not None:
+                raise StartupError(f"sharing on port {self.config.sharing.port}: {self._sharing_error}")
+        self._spawn("coopd-merging", "merging", self.merger.run)
+        self.watchdog.start()
+        self.state = "running"
+        self.notifier.ready(self.summary())
+        log.info(
+            "coopd vehicle %d running (pid %d): MAVLink %s, camera %s, control %s, memory budget %d MiB",
+            self.vehicle_id,
+            self.pid,
+            self.config.vehicle.mavlink,
+            self.config.camera.source,
+            self.config.daemon.control_socket,
+            self.config.daemon.memory_mb,
+        )
+
+    def _spawn(self, name: str, role: str, target) -> None:
+        def run():
+            self.priorities.apply(role)
+            try:
+                target()
+            except Exception:
+                log.exception("thread %s ended with an error", name)
+
+        t = threading.Thread(target=run, name=name, daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def _warm_up(self) -> None:
+        """Load (or compile) the mapping kernels before the first frame counts against latency."""
+        t0 = time.monotonic()
+        m = Mapper(replace(self.config.mapping, threads=1))
+        intr = Intrinsics.from_fov(32, 24, 87.0)
+        forward = Pose(np.zeros(3), np.array([0.5, -0.5, 0.5, -0.5]))
+        m.integrate(np.full((24, 32), 2000, np.uint16), intr, forward)
+        m.close()
+        encode_map(m.grid, MapMeta(self.vehicle_id, 1))
+        log.info("kernels ready in %.1f s", time.monotonic() - t0)
+
+    def _remove_stray_temp_files(self) -> None:
+        for p in self.state_dir.glob(f".{FRAME_FILE}.*.tmp"):
+            try:
+                p.unlink()
+            except OSError:
+                pass
+
+    def request_stop(self, reason: str) -> None:
+        """Ask run() to return (signal handlers call this; it only sets an event)."""
+        if not self._stop.is_set():
+            self.stop_reason = reason
+            self._stop.set()
+
+    def run(self) -> None:
+        """The main loop: health beat, memory ledger, periodic checkpoint and STATUS, until stopped."""
+        while not self._stop.is_set():
+            now = time.monotonic()
+            self._beats["main"] = now
+            self._account_memory()
+            if now >= self._next_checkpoint:
+                self._next_checkpoint = now + self.config.daemon.checkpoint_period_s
+                self.checkpoint()
+            if now >= self._next_status:
+                self._next_status = now + STATUS_PERIOD_S
+                self.notifier.status(self.summary())
+            self._stop.wait(MAIN_PERIOD_S)
+
+    def shutdown(self) -> None:
+        """Stop every stage, write the final checkpoint, remove the control socket."""
+        t0 = time.monotonic()
+        self.state = "stopping"
+        log.info("stopping (%s)", self.stop_reason or "requested")
+        self.notifier.stopping("stopping: writing the final checkpoint")
+        self._stop.set()
+        self.watchdog.stop()
+        self.merger.stop()
+        self.camera.stop()
+        self.link.stop()
+        for t in self._threads:
+            if t.name in ("coopd-mapping", "coopd-camera", "coopd-mavlink"):
+                t.join(SHUTDOWN_JOIN_S)
+        self.checkpoint()
+        if self.sharing is not None:
+            self.sharing.stop()
+        self.control.stop()
+        for t in self._threads:
+            t.join(SHUTDOWN_JOIN_S)
+        self.mapper.close()
+        self.notifier.close()
+        self.state = "stopped"
+        log.info("stopped in %.1f s", time.monotonic() - t0)
+
+    # ------------------------------------------------------------------------------- mapping
+    def _mapping_loop(self) -> None:
+        """Take the newest frame (older ones were replaced and counted), pose it, integrate it."""
+        while not self._stop.is_set():
+            self._beats["mapping"] = time.monotonic()
+            frame = self.slot.take(timeout=0.2)
+            if frame is None:
+                continue
+            associated = self.associator.associate(frame)
+            if associated is None:
+                continue
+            try:
+                self.mapper.integrate(
+                    associated.depth, associated.intrinsics, associated.camera_pose, associated.stamp
+                )
+            except FrameRejected:
+                continue  # counted by the Mapper
+            self.frames_mapped += 1
+            self.latency_s.append(time.monotonic() - frame.received_local)
+
+    # ------------------------------------------------------------------------------- sharing
+    def _sharing_loop(self, started: threading.Event) -> None:
+        """Start the sharing service from this thread (its threads inherit the priority), restore the
+        received maps from their checkpoints, then publish the local map whenever it changed."""
+        try:
+            self.sharing.start()
+        except OSError as e:
+            self._sharing_error = str(e)
+            started.set()
+            return
+        self._restore_received()
+        started.set()
+        while not self._stop.wait(PUBLISH_PERIOD_S):
+            version = self.mapper.version
+            if version >= 1 and version > self._published_version:
+                v, message = self.local_message()
+                try:
+                    self.sharing.publish(message, v)
+                    self._published_version = v
+                except ValueError as e:
+                    log.error("publishing local map v%d refused: %s", v, e)
+
+    def _restore_received(self) -> None:
+        for name in self.store.names():
+            if not name.startswith("peer-"):
+                continue
+            cp = self.store.load_latest(name)
+            if cp is None:
+                continue
+            data = encode_map(cp.grid, cp.meta)
+            summary = MessageSummary(cp.meta.vehicle_id, cp.meta.version, len(data), cp.grid.size)
+            try:
+                if self.sharing.received.offer(summary, data, via=None):
+                    self._saved_versions[name] = cp.meta.version
+                    log.info("received map of vehicle %d v%d restored from %s", cp.meta.vehicle_id,
+                             cp.meta.version, cp.path.name)
+            except Exception as e:  # StoreFull: the budget shrank since it was saved
+                log.warning("received map %s not restored: %s", cp.path.name, e)
+
+    def _on_map_received(self, vehicle_id: int, version: int) -> None:
+        if self.config.merging.on_receive:
+            self.merger.request(f"map of vehicle {vehicle_id} v{version}")
+
+    def _received_maps(self) -> list:
+        return [] if self.sharing is None else self.sharing.received.all()
+
+    def local_message(self) -> tuple[int, bytes]:
+        """(version, encoded local map), encoded again only when the map changed."""
+        with self._message_lock:
+            cached = self._local_message
+            if cached is not None and cached[0] == self.mapper.version:
+                return cached
+            grid, version = self.mapper.snapshot()
+            message = encode_map(grid.shrunk(), MapMeta(self.vehicle_id, version, time.time()))
+            self._local_message = (version, message)
+            return self._local_message
+
+    # -------------------------------------------------------------------- persistence, memory
+    def checkpoint(self) -> None:
+        """Save the local map and every received map that changed since their last checkpoint."""
+        self._save_origin()
+        if self.mapper.version > self._saved_versions.get("local", 0) and self._origin_saved:
+            version, message = self.local_message()
+            if self.store.save_message("local", message) is not None:
+                self._saved_versions["local"] = version
+        for m in self._received_maps():
+            name = f"peer-{m.vehicle_id}"
+            if m.version > self._saved_versions.get(name, -1):
+                if self.store.save_message(name, m.data) is not None:
+                    self._saved_versions[name] = m.version
+
+    def _account_memory(self) -> None:
+        """Every grid in the ledger: local (cells), received (compressed bytes)."""
+        self.budget.reserve("local", self.mapper.grid.size)
+        held = set()
+        for m in self._received_maps():
+            held.add(f"received:{m.vehicle_id}")
+            self.budget.reserve(f"received:{m.vehicle_id}", len(m.data))
+        for name in self.budget.snapshot()["entries"]:
+            if name.startswith("received:") and name not in held:
+                self.budget.release(name)
+
+    # -------------------------------------------------------------------------------- health
+    def healthy(self) -> bool:
+        """True while the main loop and the mapping thread have looped recently."""
+        now = time.monotonic()
+        return all(now - self._beats[k] <= HEALTH_MAX_AGE_S for k in ("main", "mapping"))
+
+    def summary(self) -> str:
+        return status_report.summary(self)
+
+    # ------------------------------------------------------------------------------ commands
+    def handle_status(self, args: dict) -> dict:
+        return status_report.build(self)
+
+    def handle_peers(self, args: dict) -> dict:
+        return {"peers": status_report.peers(self)}
+
+    def handle_merge_now(self, args: dict) -> dict:
+        return self.merger.merge_now(MERGE_NOW_TIMEOUT_S)
+
+    def handle_dump_map(self, args: dict) -> BlobReply:
+        which = args.get("map")
+        if which == "local":
+            version, message = self.local_message()
+            return BlobReply({"map": "local", "version": version}, message)
+        if which == "global":
+            merged = self.merger.global_map()
+            if merged is None:
+                version, message = self.local_message()
+                note = status_report.global_note(self)
+                return BlobReply({"map": "global", "version": version, "note": note}, message)
+            grid, meta = merged
+            return BlobReply({"map": "global", "version": meta.version}, encode_map(grid.shrunk(), meta))
+        if which == "peer":
+            vid = args.get("vehicle_id")
+            if not isinstance(vid, int) or isinstance(vid, bool) or not 1 <= vid <= 255:
+                raise CommandFailed("peer maps are named by a vehicle id 1..255")
+            stored = None if self.sharing is None else self.sharing.received.get(vid)
+            if stored is None:
+                raise CommandFailed(f"no map received from vehicle {vid}")
+            return BlobReply({"map": f"peer:{vid}", "version": stored.version}, stored.data)
+        raise CommandFailed("map must be local, global or peer (with vehicle_id)")
+
+
+def install_signal_handlers(daemon: Daemon) -> None:
+    """SIGTERM/SIGINT stop the daemon (checkpoint written); SIGHUP is logged and ignored."""
+
+    def stop(signum, _frame):
+        daemon.request_stop(signal.Signals(signum).name)
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGHUP, lambda *_: log.info("SIGHUP ignored: restart coopd to reload the config"))

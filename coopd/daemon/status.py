@@ -1,0 +1,186 @@
+"""`coopctl status` and the sd_notify STATUS= line, assembled from what each stage reports.
+
+Field names follow docs/operations.md ("Control protocol"); coopctl prints missing parts as '-'.
+"""
+
+import math
+import threading
+import time
+
+import numpy as np
+
+from coopd.daemon.merger import NOT_AVAILABLE
+from coopd.daemon.threads import ROLE_NICE, read_nice
+
+
+def build(daemon) -> dict:
+    """The whole status of a running Daemon as plain JSON data."""
+    link = daemon.link.status()
+    camera = daemon.camera.status() if hasattr(daemon.camera, "status") else {}
+    cam_counters = camera.get("counters", {})
+    mapper = daemon.mapper
+    grid = mapper.grid
+    counts = grid.counts()
+    assoc = daemon.associator.status()
+    lat = np.array(daemon.latency_s, dtype=np.float64)
+    merges = daemon.merger.status()
+    return {
+        "vehicle_id": daemon.vehicle_id,
+        "pid": daemon.pid,
+        "state": daemon.state,
+        "uptime_s": round(time.monotonic() - daemon.started, 1),
+        "link": {
+            "state": link["link"],
+            "age_s": link["heartbeat_age_s"],
+            "odometry_age_s": link["odometry_age_s"],
+            "odometry_stale": link["odometry_stale"],
+            "connection": link["connection"],
+            "map_origin_fc_enu": link["map_origin_fc_enu"],
+            "counters": link["counters"],
+        },
+        "pose": pose(daemon.link, link),
+        "map": {
+            "shape": list(grid.shape),
+            "cells": grid.size,
+            "known": counts.known,
+            "occupied": counts.occupied,
+            "resolution_m": grid.resolution,
+            "version": mapper.version,
+            "offset": [int(v) for v in grid.offset],
+        },
+        "mapping": {
+            "state": "paused: odometry stale" if assoc["paused"] else "mapping",
+            "frames_mapped": daemon.frames_mapped,
+            "latency_ms": _percentiles(lat),
+            "skipped": assoc["skipped"],
+            "rejected": dict(mapper.totals.reject_reasons),
+        },
+        "frames": {
+            "in": cam_counters.get("frames", 0),
+            "mapped": daemon.frames_mapped,
+            "dropped": daemon.slot.dropped,
+            "skipped": sum(assoc["skipped"].values()),
+            "rejected": mapper.totals.frames_rejected,
+        },
+        "camera": {
+            "source": daemon.config.camera.source,
+            "connected": camera.get("connected"),
+            "last_frame_age_s": camera.get("last_frame_age_s"),
+            "stalls": cam_counters.get("disconnect_stall", 0),
+            "reconnects": max(0, cam_counters.get("connects", 0) - 1),
+            "counters": cam_counters,
+        },
+        "peers": peers(daemon),
+        "sharing": None if daemon.sharing is None else _jsonable(daemon.sharing.stats()),
+        "merges": merges,
+        "merging": merges["state"],
+        "memory": daemon.budget.snapshot(),
+        "threads": threads(daemon),
+        "control": daemon.control.stats(),
+        "checkpoint": daemon.store.stats(),
+        "watchdog": {
+            "interval_s": daemon.watchdog.interval,
+            "pings": daemon.watchdog.pings,
+            "withheld": daemon.watchdog.withheld,
+            "healthy": daemon.healthy(),
+        },
+    }
+
+
+def pose(link_obj, link: dict) -> dict | None:
+    latest = link_obj.poses.latest()
+    if latest is None:
+        return None
+    w, x, y, z = (float(v) for v in latest.quaternion)
+    yaw = math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+    return {
+        "position_m": [round(float(v), 3) for v in latest.position],
+        "yaw_deg": round(yaw, 2),
+        "age_s": link["odometry_age_s"],
+        "t_fc": latest.t_fc,
+    }
+
+
+def peers(daemon) -> list[dict]:
+    """One entry per peer vehicle, in coopctl's format (with the sharing stats as extras)."""
+    if daemon.sharing is None:
+        return []
+    out = []
+    for p in daemon.sharing.stats()["peers"]:
+        vid = p["vehicle_id"]
+        stored = daemon.sharing.received.get(vid) if vid is not None else None
+        out.append(
+            {
+                "vehicle_id": vid,
+                "address": f"{p['address']}:{p['port']}" if p.get("port") else p.get("address"),
+                "connected": p["connected"],
+                "map_version": None if stored is None else stored.version,
+                "map_bytes": None if stored is None else len(stored.data),
+                "last_seen_s": p["last_seen_ago_s"],
+                "maps_sent": p["maps_sent"],
+                "maps_received": p["maps_received"],
+                "failures": p["failures"],
+                "offset": daemon.merger.offsets.get(vid),
+            }
+        )
+    return sorted(out, key=lambda p: (p["vehicle_id"] is None, p["vehicle_id"] or 0))
+
+
+def threads(daemon) -> list[dict]:
+    """Role threads (priority applied by themselves) and the sharing service's threads, which
+    inherit the nice of coopd-sharing that started them."""
+    out = daemon.priorities.report()
+    for t in threading.enumerate():
+        if t.name.startswith("coopd-share") and t.native_id is not None:
+            try:
+                nice = read_nice(t.native_id)
+            except (OSError, ValueError, IndexError):
+                continue
+            out.append(
+                {"role": "sharing", "thread": t.name, "tid": t.native_id, "requested": ROLE_NICE["sharing"],
+                 "applied": nice, "note": "" if nice == ROLE_NICE["sharing"] else "inherited"}
+            )
+    return out
+
+
+def global_note(daemon) -> str:
+    m = daemon.merger
+    if not m.available:
+        return f"{NOT_AVAILABLE}: the global map is the local map"
+    return "no merge yet: the global map is the local map"
+
+
+def summary(daemon) -> str:
+    """One short line for sd_notify STATUS= (systemctl status shows it)."""
+    grid = daemon.mapper.grid
+    link = daemon.link.state
+    paused = " (paused)" if daemon.associator.status()["paused"] else ""
+    n_peers = 0 if daemon.sharing is None else len(daemon.sharing.peers.vehicle_ids())
+    m = daemon.merger
+    merges = f"merges {m.counters['done']}/{m.counters['failed']}/{m.counters['deferred']}"
+    if not m.available:
+        merges = "merging n/a"
+    return (
+        f"{daemon.state}: link {link}, {daemon.frames_mapped} frames mapped{paused}, "
+        f"map v{daemon.mapper.version} {'x'.join(map(str, grid.shape))}, {n_peers} peers, {merges}"
+    )
+
+
+def _percentiles(values: np.ndarray) -> dict:
+    if values.size == 0:
+        return {"n": 0, "p50": None, "p99": None, "max": None}
+    return {
+        "n": int(values.size),
+        "p50": round(1e3 * float(np.percentile(values, 50)), 2),
+        "p99": round(1e3 * float(np.percentile(values, 99)), 2),
+        "max": round(1e3 * float(values.max()), 2),
+    }
+
+
+def _jsonable(value):
+    """Dict keys as strings (JSON), recursively."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
