@@ -49,7 +49,7 @@ def build(daemon) -> dict:
             "offset": [int(v) for v in grid.offset],
         },
         "mapping": {
-            "state": "paused: odometry stale" if assoc["paused"] else "mapping",
+            "state": mapping_state(daemon, link, camera),
             "frames_mapped": daemon.frames_mapped,
             "latency_ms": _percentiles(lat),
             "skipped": assoc["skipped"],
@@ -83,8 +83,20 @@ def build(daemon) -> dict:
             "pings": daemon.watchdog.pings,
             "withheld": daemon.watchdog.withheld,
             "healthy": daemon.healthy(),
+            "notify_sent": daemon.notifier.sent,
+            "notify_dropped": getattr(daemon.notifier, "dropped", 0),
         },
     }
+
+
+def mapping_state(daemon, link: dict, camera: dict) -> str:
+    """mapping, or why not: odometry stale (link lost) pauses it, a silent camera starves it."""
+    if link["odometry_stale"]:
+        return f"paused: odometry stale (link {link['link']})"
+    age = camera.get("last_frame_age_s")
+    if age is None or age > daemon.config.camera.stall_timeout_s:
+        return "waiting for camera frames"
+    return "mapping"
 
 
 def pose(link_obj, link: dict) -> dict | None:
@@ -154,7 +166,7 @@ def summary(daemon) -> str:
     """One short line for sd_notify STATUS= (systemctl status shows it)."""
     grid = daemon.mapper.grid
     link = daemon.link.state
-    paused = " (paused)" if daemon.associator.status()["paused"] else ""
+    paused = " (paused: odometry stale)" if daemon.link.odometry_stale() else ""
     n_peers = 0 if daemon.sharing is None else len(daemon.sharing.peers.vehicle_ids())
     m = daemon.merger
     merges = f"merges {m.counters['done']}/{m.counters['failed']}/{m.counters['deferred']}"
