@@ -1,0 +1,268 @@
+"""The Daemon in-process without a vehicle: command line and config errors, control commands,
+sd_notify READY/STATUS/WATCHDOG (withheld while the mapping thread hangs, never blocking on a full
+notify queue), resume from checkpoints with the map frame, and the merging wiring."""
+
+import json
+import os
+import shutil
+import socket
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from daemon_harness import NotifyListener, port_block, wait_until, workdir
+
+from coopd.daemon import control
+from coopd.daemon.budget import MemoryBudget
+from coopd.daemon.checkpoint import CheckpointStore
+from coopd.daemon.config import from_dict
+from coopd.daemon.main import main
+from coopd.daemon.merger import NOT_AVAILABLE, Merger
+from coopd.daemon.service import FRAME_FILE, Daemon, DaemonNotifier, StartupError
+from coopd.geometry import rigid, rotation_z
+from coopd.grid import OccupancyGrid
+from coopd.sharing.wire import MapMeta, decode_map, encode_map
+
+
+def _config(wd, **daemon_keys):
+    mav, _ = port_block(3)
+    return from_dict({
+        "vehicle": {"mavlink": f"udpin:127.0.0.1:{mav}"},
+        "camera": {"source": f"socket:{wd}/no-camera.sock"},
+        "sharing": {"enabled": False},
+        "daemon": {"state_dir": str(wd / "state"), "control_socket": str(wd / "control.sock"), **daemon_keys},
+    })
+
+
+@pytest.fixture
+def wd():
+    d = workdir("coopd-svc-")
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def _box_grid(offset=(0, 0, 0)) -> OccupancyGrid:
+    g = OccupancyGrid.empty((30, 30, 10), 0.1)
+    keys = np.array([[x, y, 2] for x in range(-5, 6) for y in range(-5, 6)]) + np.array(offset)
+    g.set_keys(keys, 0)
+    g.set_keys(np.array([[x, 5, z] for x in range(-5, 6) for z in range(0, 4)]) + np.array(offset), 90)
+    return g
+
+
+# ------------------------------------------------------------------------------------ command line
+def test_command_line_and_config_errors(wd, capsys):
+    assert main(["--config", str(wd / "missing.toml")]) == 2
+    assert "configuration" in capsys.readouterr().err
+    assert main(["--no-config", "--vehicle-id", "0", "--check-config"]) == 2
+    assert "vehicle.id: 0 is outside 1..255" in capsys.readouterr().err
+    (wd / "c.toml").write_text('[vehicle]\nidd = 3\n')
+    assert main(["--config", str(wd / "c.toml"), "--check-config"]) == 2
+    assert "vehicle.idd: unknown key" in capsys.readouterr().err
+    assert main(["--no-config", "--vehicle-id", "7", "--peer", "127.0.0.1:7401", "--check-config"]) == 0
+    assert "vehicle 7" in capsys.readouterr().out
+
+
+def test_second_daemon_on_a_served_control_socket_refuses_to_start(wd):
+    cfg = _config(wd)
+    with control.ControlServer(cfg.daemon.control_socket, {}):
+        d = Daemon(cfg)
+        with pytest.raises(StartupError, match="another process is serving"):
+            d.start()
+        d.shutdown()
+
+
+# ---------------------------------------------------------------------------------- control, notify
+def test_commands_without_a_vehicle(wd):
+    d = Daemon(_config(wd, memory_mb=400))
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        status, _ = control.request(d.config.daemon.control_socket, "status")
+        json.dumps(status, allow_nan=False)
+        assert status["state"] == "running" and status["vehicle_id"] == 1
+        assert status["link"]["state"] == "connecting" and status["pose"] is None
+        assert status["mapping"]["state"].startswith("paused: odometry stale")
+        assert status["merging"] == NOT_AVAILABLE
+        assert status["memory"]["budget_bytes"] == 400 << 20 and status["memory"]["entries"]["local"] > 0
+        roles = {t["role"]: t for t in status["threads"]}
+        assert set(roles) >= {"mavlink", "camera", "mapping", "merging", "control"}
+        assert roles["merging"]["applied"] == 10
+        assert control.request(d.config.daemon.control_socket, "peers")[0] == {"peers": []}
+        merge, _ = control.request(d.config.daemon.control_socket, "merge-now")
+        assert merge == {"outcome": "failed", "detail": NOT_AVAILABLE}
+        result, blob = control.request(d.config.daemon.control_socket, "dump-map", {"map": "global"},
+                                       max_blob_bytes=1 << 20)
+        assert "not available" in result["note"]
+        grid, meta = decode_map(blob)
+        assert meta.vehicle_id == 1
+        for bad in ({"map": "peer", "vehicle_id": 9}, {"map": "peer", "vehicle_id": "x"}, {"map": "moon"}):
+            with pytest.raises(control.RemoteError):
+                control.request(d.config.daemon.control_socket, "dump-map", bad, max_blob_bytes=1 << 20)
+    finally:
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+    assert not os.path.exists(d.config.daemon.control_socket)
+
+
+def test_sd_notify_ready_status_and_watchdog_only_while_mapping_lives(wd):
+    listener = NotifyListener(wd)
+    notifier = DaemonNotifier({"NOTIFY_SOCKET": listener.path, "WATCHDOG_USEC": "400000"})
+    d = Daemon(_config(wd), notifier=notifier)
+    hang = threading.Event()
+    real_take = d.slot.take
+
+    def take(timeout=0.0):
+        if hang.is_set():
+            release.wait(30)
+        return real_take(timeout)
+
+    release = threading.Event()
+    d.slot.take = take
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        assert wait_until(lambda: listener.with_field("READY=1"), 5)
+        time.sleep(1.5)
+        pings = [t for t, _ in listener.with_field("WATCHDOG=1")]
+        gaps = np.diff(pings)
+        assert len(pings) >= 5 and 0.1 < gaps.mean() < 0.35, gaps
+        assert listener.with_field("STATUS=running: link connecting")
+        hang.set()  # the mapping thread stops looping: after HEALTH_MAX_AGE_S the pings stop
+        time.sleep(4.0)
+        t_quiet = time.monotonic()
+        time.sleep(1.0)
+        assert not [t for t, _ in listener.with_field("WATCHDOG=1") if t > t_quiet]
+        assert d.watchdog.withheld > 0 and not d.healthy()
+        release.set()
+        hang.clear()
+        assert wait_until(lambda: [t for t, _ in listener.with_field("WATCHDOG=1") if t > t_quiet + 1.0], 3)
+    finally:
+        release.set()
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+        listener.close()
+    assert listener.with_field("STOPPING=1")
+
+
+def test_a_notify_queue_nobody_reads_never_blocks_the_daemon(wd):
+    deaf = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    deaf.bind(str(wd / "deaf.sock"))
+    notifier = DaemonNotifier({"NOTIFY_SOCKET": str(wd / "deaf.sock"), "WATCHDOG_USEC": "100000"})
+    d = Daemon(_config(wd), notifier=notifier)
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        assert wait_until(lambda: notifier.dropped > 5, 10)
+        t0 = time.monotonic()
+        status, _ = control.request(d.config.daemon.control_socket, "status", timeout_s=5)
+        assert time.monotonic() - t0 < 2.0 and status["watchdog"]["notify_dropped"] > 5
+        assert d.healthy()
+    finally:
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+        deaf.close()
+
+
+# ------------------------------------------------------------------------------------------ resume
+def test_resume_from_checkpoint_keeps_version_cells_and_map_frame(wd):
+    cfg = _config(wd)
+    store = CheckpointStore(cfg.daemon.state_dir)
+    grid = _box_grid()
+    store.save("local", grid, MapMeta(1, 41))
+    store.save("local", grid, MapMeta(1, 42))
+    (wd / "state" / FRAME_FILE).write_text(json.dumps({"vehicle_id": 1, "origin_fc_enu": [1.5, -2.0, 0.25]}))
+    newest = store.generations("local")[0][1]
+    newest.write_bytes(newest.read_bytes()[:-7])  # torn: the older generation is loaded
+    d = Daemon(cfg)
+    assert d.mapper.version == 41
+    assert d.mapper.grid.same_cells(grid)
+    assert d.mapper.grid.growth.max_cells <= d.budget.grid_budget // 4
+    np.testing.assert_allclose(d.link.odometry.origin_enu, [1.5, -2.0, 0.25])
+    assert d.store.set_aside == 1
+    d.mapper.version = 45
+    d.checkpoint()
+    _, meta = decode_map(store.generations("local")[0][1].read_bytes())
+    assert meta.version == 45
+    d.mapper.close()
+
+
+@pytest.mark.parametrize("frame", ["missing", "other vehicle", "garbage"])
+def test_no_resume_without_a_valid_map_frame(wd, frame):
+    cfg = _config(wd)
+    CheckpointStore(cfg.daemon.state_dir).save("local", _box_grid(), MapMeta(1, 9))
+    text = {"missing": None, "other vehicle": json.dumps({"vehicle_id": 2, "origin_fc_enu": [0, 0, 0]}),
+            "garbage": "\x00{[not json"}[frame]
+    if text is not None:
+        (wd / "state" / FRAME_FILE).write_text(text)
+    d = Daemon(cfg)
+    assert d.mapper.version == 0 and d.mapper.grid.counts().known == 0
+    assert d.link.odometry.origin_enu is None
+    d.mapper.close()
+
+
+# ----------------------------------------------------------------------------------------- merging
+def _stored(vid, grid, version=1):
+    return SimpleNamespace(vehicle_id=vid, version=version, data=encode_map(grid, MapMeta(vid, version)))
+
+
+def test_merger_fuses_accepted_maps_with_their_transform_and_defers_over_budget():
+    local = _box_grid()
+    t = rigid(rotation_z(np.pi / 2), [3.0, 0.0, 0.0])  # vehicle 5's frame -> ours
+    other = _box_grid(offset=(0, 0, 0))
+    other.set_keys(np.array([[0, -5, 3]]), 100)  # a cell only vehicle 5 knows
+    calls = []
+
+    def merge_all(reference, others, params):
+        calls.append((reference.shape, sorted(others)))
+        return SimpleNamespace(vehicles={5: SimpleNamespace(transform=t, accepted=True, score=0.8),
+                                         6: SimpleNamespace(transform=np.eye(4), accepted=False, score=0.1)})
+
+    received = [_stored(5, other), _stored(6, _box_grid(offset=(40, 0, 0)))]
+    budget = MemoryBudget(64 << 20, baseline_bytes=0)
+    m = Merger(1, lambda: (local.copy(), 7), lambda: received, budget, period_s=3600, merge_fn=merge_all)
+    out = m.merge_once("test")
+    assert out["outcome"] == "done", out
+    merged, meta = m.global_map()
+    # the cell (0, -5, 3) of vehicle 5 lands at R p + t = (3.5, 0, 0.3) m in our frame
+    assert merged.values_at(np.array([[3.5, 0.0, 0.3]]))[0] == 100
+    assert merged.values_at(np.array([[3.0, 0.0, 0.2]]))[0] == 0  # its floor, moved
+    assert local.values_at(np.array([[3.0, 0.0, 0.2]]))[0] == -1
+    assert merged.values_at(np.array([[4.0, 0.0, 0.2]]))[0] == -1  # vehicle 6 was not accepted
+    assert merged.values_at(np.array([[0.0, 0.0, 0.2]]))[0] == 0  # our own map is kept
+    assert m.offsets[5]["accepted"] and m.offsets[5]["translation_m"] == [3.0, 0.0, 0.0]
+    assert m.offsets[5]["yaw_deg"] == 90.0 and not m.offsets[6]["accepted"]
+    assert meta.version == 1 and budget.snapshot()["entries"]["global"] == merged.size
+    assert "merge-scratch" not in budget.snapshot()["entries"]
+    # a budget too small for the decompressed maps: deferred, the last global map is kept
+    tight = Merger(1, lambda: (local.copy(), 7), lambda: received, MemoryBudget(20_000, baseline_bytes=0),
+                   period_s=3600, merge_fn=merge_all)
+    out = tight.merge_once("test")
+    assert out["outcome"] == "deferred" and "memory budget" in out["detail"]
+    assert tight.global_map() is None and tight.counters["deferred"] == 1 and len(calls) == 1
+
+
+def test_merger_thread_merges_on_request_and_reports_failures():
+    def broken(reference, others, params):
+        raise RuntimeError("no overlap")
+
+    budget = MemoryBudget(64 << 20, baseline_bytes=0)
+    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=3600,
+               merge_fn=broken)
+    runner = threading.Thread(target=m.run, daemon=True)
+    runner.start()
+    try:
+        out = m.merge_now(10)
+        assert out["outcome"] == "failed" and "no overlap" in out["detail"]
+        assert m.status()["failed"] == 1 and m.status()["state"] == "idle"
+    finally:
+        m.stop()
+        runner.join(5)
+    assert not runner.is_alive()
