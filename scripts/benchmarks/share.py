@@ -36,6 +36,7 @@ SIZES = {"6M": (250, 250, 100), "25M": (500, 500, 100), "110M": (1050, 1050, 100
 """Thesis Table 4 shapes: bookstore (6.25 M), hospital UAV 1 (25 M), racetrack UAV 1 (110.25 M)."""
 EXPLORED = {"6M": 0.25, "25M": 0.15, "110M": 0.06}
 ENCODINGS = ("default", "raw")
+"""Compressed (the wire default) and uncompressed; --encodings adds e.g. 'thesis' (the thesis codec)."""
 THESIS_ANCHOR = {"share_110M_compressed_s": 1.75, "share_110M_uncompressed_s": 200.0,
                  "source": "thesis §10.2, i7-4510U, C++, transfer only"}
 GOAL_110M_LOOPBACK_S = 0.5
@@ -67,7 +68,7 @@ def serve(host: str, port: int) -> None:
 def warm_up() -> None:
     """Compile the codec kernels (numba JIT) before anything is timed."""
     grid = OccupancyGrid(building_map((60, 60, 20), 0.5, 0), 0.1)
-    for enc in ENCODINGS:
+    for enc in wire.ENCODINGS:
         wire.decode_map(wire.encode_map(grid, wire.MapMeta(0, 1), enc))
 
 
@@ -133,14 +134,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run_loopback(sizes, repeat) -> list[dict]:
+def run_loopback(sizes, repeat, encodings) -> list[dict]:
     port = free_port()
     rx = Receiver([], "127.0.0.1", port)
     results = []
     try:
         version = 1
         for size in sizes:
-            for enc in ENCODINGS:
+            for enc in encodings:
                 r = send_runs("127.0.0.1", port, size, enc, repeat, version)
                 version += repeat
                 decodes = rx.decode_times()
@@ -153,7 +154,7 @@ def run_loopback(sizes, repeat) -> list[dict]:
     return results
 
 
-def run_shaped(sizes, rate_mbit: float) -> tuple[list[dict], str | None]:
+def run_shaped(sizes, rate_mbit: float, encodings) -> tuple[list[dict], str | None]:
     """One run per size and encoding over a veth between two namespaces, tbf on the sender side."""
     if os.geteuid() != 0 or shutil.which("ip") is None or shutil.which("tc") is None:
         return [], "needs root, ip and tc"
@@ -178,7 +179,7 @@ def run_shaped(sizes, rate_mbit: float) -> tuple[list[dict], str | None]:
         try:
             version = 1
             for size in sizes:
-                for enc in ENCODINGS:
+                for enc in encodings:
                     out = subprocess.run(
                         ["ip", "netns", "exec", a, sys.executable, __file__, "--send", "10.213.9.2", "7400",
                          size, enc, "1", str(version)],
@@ -208,6 +209,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-shaped", action="store_true")
     ap.add_argument("--rate-mbit", type=float, default=54.0)
+    ap.add_argument("--encodings", default=",".join(ENCODINGS), help="e.g. default,raw,thesis")
     ap.add_argument("--serve", nargs=2, metavar=("HOST", "PORT"))
     ap.add_argument("--send", nargs=6, metavar=("HOST", "PORT", "SIZE", "ENCODING", "REPEAT", "VERSION"))
     args = ap.parse_args()
@@ -222,9 +224,11 @@ def main() -> None:
     for s in sizes:
         if s not in SIZES:
             ap.error(f"unknown size {s}; known: {', '.join(SIZES)}")
-    loop = run_loopback(sizes, args.repeat)
-    shaped, why = ([], "disabled by --no-shaped") if args.no_shaped else run_shaped(sizes, args.rate_mbit)
-    big = [r for r in loop if r["size"] == "110M" and r["encoding"] != "raw"]
+    encodings = [e for e in args.encodings.split(",") if e]
+    loop = run_loopback(sizes, args.repeat, encodings)
+    shaped, why = (([], "disabled by --no-shaped") if args.no_shaped
+                   else run_shaped(sizes, args.rate_mbit, encodings))
+    big = [r for r in loop if r["size"] == "110M" and r["encoding"] == wire.DEFAULT_ENCODING]
     report = {
         "benchmark": "share", "host": platform.node(), "python": platform.python_version(),
         "cpus": os.cpu_count(), "block_size": SETTINGS.block_size,
