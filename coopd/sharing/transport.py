@@ -289,6 +289,9 @@ class _Connection:
                 return
             was_in = self.reasm.in_transfer
             events = self.reasm.commit(n)
+            if phase == "idle" and not self.reasm.between_transfers:
+                phase = "frame"  # a control frame has begun: base transfer time, not the idle time
+                deadline = min(deadline, time.monotonic() + s.transfer_base_s)
             if self.reasm.in_transfer and not was_in:
                 if s.swarm_key is not None and self.hello is None:
                     raise Rejected("auth", "a swarm key is set and the peer sent no hello (thesis-format "

@@ -169,3 +169,22 @@ def test_one_address_cannot_take_every_slot(server):
     finally:
         for s in flood:
             s.close()
+
+
+def test_trickled_frame_after_hello_is_cut(server):
+    svc = server(transfer_base_s=1.0, read_timeout=0.5, idle_timeout=30.0)
+    link = PeerLink.connect(*svc.address, settings(), 7)  # a proper hello: the connection is idle
+    frame = mtp.start_frame(1, BS)
+    t0 = time.monotonic()
+    try:
+        for k in range(40):  # one byte of a control frame every 0.1 s (bounded: 4 s)
+            link.sock.sendall(frame[k:k + 1])
+            time.sleep(0.1)
+            if failures(svc).get("timeout"):
+                break
+    except OSError:
+        pass
+    finally:
+        link.close()
+    assert wait_until(lambda: failures(svc).get("timeout") == 1, 2)
+    assert time.monotonic() - t0 < 2.5
