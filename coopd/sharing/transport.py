@@ -35,7 +35,8 @@ class TransportSettings:
     """A connection with no transfer for this long is closed (the sender reconnects)."""
     transfer_base_s: float = 10.0
     min_rate: float = 128_000.0
-    """Bytes/s: a transfer must finish within transfer_base_s + announced bytes / min_rate."""
+    """Bytes/s: after transfer_base_s a transfer must have received at least min_rate bytes per
+    second so far (so it ends by transfer_base_s + size / min_rate, and a trickle is cut early)."""
     max_connections: int = 32
     max_connections_per_address: int = 4
     """A single host flooding connections cannot take every slot."""
@@ -268,6 +269,8 @@ class _Connection:
         t_start = 0.0
         while not stop.is_set():
             now = time.monotonic()
+            if phase == "transfer":  # keep up at least min_rate after the base time, all along
+                deadline = t_start + s.transfer_base_s + self.reasm.received_bytes / s.min_rate
             if now >= deadline:
                 if phase == "idle" and self.reasm.between_transfers:
                     log.info("closing idle connection from %s (vehicle %s)", self.address, self.vehicle_id)

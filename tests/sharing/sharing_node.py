@@ -31,12 +31,17 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=0.0, help="max send rate, bytes/s")
     ap.add_argument("--relay", action="store_true")
     ap.add_argument("--grace", type=float, default=30.0)
+    ap.add_argument("--max-inflight-mb", type=int, default=512)
+    ap.add_argument("--max-connections", type=int, default=32)
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s node{a.vid} %(name)s %(levelname)s %(message)s")
     settings = TransportSettings(connect_timeout=0.3, read_timeout=1.0, handshake_timeout=1.0,
                                  idle_timeout=20.0, transfer_base_s=20.0, max_bytes=64 << 20,
-                                 max_cells=64 << 20, swarm_key=a.key.encode() or None, max_send_rate=a.rate)
+                                 max_cells=64 << 20, swarm_key=a.key.encode() or None, max_send_rate=a.rate,
+                                 max_inflight_bytes=a.max_inflight_mb << 20,
+                                 max_connections=a.max_connections,
+                                 max_connections_per_address=a.max_connections)
     cfg = SharingConfig(vehicle_id=a.vid, listen_host=a.host, port=a.port, peers=(a.peers,),
                         peer_ports=(a.port,), scan_period=0.3, grace_period=a.grace, relay=a.relay,
                         transport=settings)
@@ -55,6 +60,9 @@ def main() -> None:
             st["received"] = {str(m.vehicle_id): [m.version, len(m.data), hashlib.sha256(m.data).hexdigest()]
                               for m in svc.received.all()}
             print(json.dumps(st, default=str), flush=True)
+        elif cmd[0] == "rss":  # peak and current resident memory, kB (for the memory-bound tests)
+            fields = dict(line.split(":", 1) for line in open("/proc/self/status") if ":" in line)
+            print(json.dumps({k: int(fields[k].split()[0]) for k in ("VmHWM", "VmRSS")}), flush=True)
         elif cmd[0] == "quit":
             break
     svc.stop()
