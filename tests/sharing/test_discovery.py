@@ -76,3 +76,19 @@ def test_peer_is_its_vehicle_id_across_addresses_and_dropped_after_grace():
         assert wait_until(lambda: a.stats()["peers"] == [], 5)
     finally:
         a.stop()
+
+
+def test_config_from_the_sharing_table():
+    from coopd.sharing.service import config_from_table
+
+    cfg = config_from_table(3, {"peers": ["10.42.0.1-10.42.0.20"], "peer_ports": [7400, 7401],
+                                "block_size": 8192, "swarm_key": "hex:" + "11" * 16, "relay": True,
+                                "read_timeout": 2.5})
+    assert cfg.vehicle_id == 3 and cfg.peers == ("10.42.0.1-10.42.0.20",) and cfg.relay
+    assert cfg.transport.block_size == 8192 and cfg.transport.swarm_key == b"\x11" * 16
+    assert cfg.transport.read_timeout == 2.5
+    assert config_from_table(1, {}).transport.swarm_key is None
+    for bad in ({"blok_size": 1}, {"block_size": 10}, {"peers": ["10.0.0.9-10.0.0.1"]},
+                {"swarm_key": "short"}):
+        with pytest.raises(ValueError):
+            config_from_table(1, bad)
