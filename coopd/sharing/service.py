@@ -11,6 +11,7 @@ cells) and `verify` (optional) fully decodes them within the limits before they 
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -112,6 +113,11 @@ class SharingService:
         self._senders: dict[int, _Sender] = {}
         self._busy_targets: set[tuple[str, int]] = set()
         self._self_targets: set[tuple[str, int]] = set()
+        self._alias_targets: dict[tuple[str, int], int] = {}
+        """Targets that reached a vehicle already served at another address -> that vehicle id."""
+        self._backoff: dict[tuple[str, int], tuple[float, int]] = {}
+        """Targets whose handshake failed -> (monotonic time of the next try, failures in a row)."""
+        self._all_senders: set[_Sender] = set()
         self._lock = threading.Lock()
         self._scanner: threading.Thread | None = None
         self.scans = 0
@@ -134,9 +140,10 @@ class SharingService:
         if self._scanner is not None:
             self._scanner.join(5)
         with self._lock:
-            senders = list(self._senders.values())
+            senders = list(self._all_senders)
         for s in senders:
             s.link.close()
+        for s in senders:
             s.thread.join(5)
         self._server.stop()
 
@@ -238,14 +245,22 @@ class SharingService:
 
     def scan_once(self) -> int:
         """Probe every target without a live sender; start senders for new peers. Returns peers found."""
+        now = time.monotonic()
         with self._lock:
-            todo = [t for t in self._targets if t not in self._busy_targets and t not in self._self_targets]
+            todo = [t for t in self._targets
+                    if t not in self._busy_targets and t not in self._self_targets
+                    and self._backoff.get(t, (0.0, 0))[0] <= now
+                    and not (t in self._alias_targets and self.peers.is_connected(self._alias_targets[t]))]
         found = 0
         source = None if self.config.listen_host in ("", "0.0.0.0") else self.config.listen_host
         for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
-            with self._lock:
-                self._busy_targets.add(target)
             sender = _Sender(self, PeerLink(sock, self.config.transport, self.vehicle_id, target[0]), target)
+            with self._lock:
+                if self._stop.is_set():
+                    sock.close()
+                    break
+                self._busy_targets.add(target)
+                self._all_senders.add(sender)
             sender.thread.start()
             found += 1
         self.scans += 1
@@ -269,15 +284,26 @@ class SharingService:
             self._senders[vid] = sender
             return True
 
-    def _unregister(self, sender: "_Sender") -> None:
+    def _unregister(self, sender: "_Sender", handshake_failed: bool) -> None:
         with self._lock:
+            self._all_senders.discard(sender)
             self._busy_targets.discard(sender.target)
+            if handshake_failed:  # e.g. wrong swarm key or block size: retry later, not every scan
+                _, n = self._backoff.get(sender.target, (0.0, 0))
+                delay = min(60.0, self.config.scan_period * 2 ** min(n, 10))
+                self._backoff[sender.target] = (time.monotonic() + delay, n + 1)
+            else:
+                self._backoff.pop(sender.target, None)
             if sender.vid is not None and self._senders.get(sender.vid) is sender:
                 del self._senders[sender.vid]
 
     def _mark_self(self, target) -> None:
         with self._lock:
             self._self_targets.add(target)
+
+    def _mark_alias(self, target, vid: int) -> None:
+        with self._lock:
+            self._alias_targets[target] = vid
 
     def stats(self) -> dict:
         """Everything coopctl status shows about sharing."""
@@ -290,6 +316,7 @@ class SharingService:
             "received_bytes_held": self.received.total_bytes(),
             "open_connections": self._server.open_connections,
             "inflight_bytes": self._server.inflight_bytes,
+            "connections_accepted": self._server.accepted,
             "refused_busy": self._server.refused_busy, "scans": self.scans,
         })
         return snap
@@ -311,12 +338,16 @@ class _Sender:
             cause = getattr(e, "cause", "timeout" if isinstance(e, TimeoutError) else "cut")
             if not svc._stop.is_set():
                 svc.peers.failure(cause, self.vid, self.target[0])
-                log.warning("sending to %s:%d (vehicle %s) failed: %s: %s", *self.target, self.vid, cause, e)
+                if self.link.peer is None and svc._backoff.get(self.target, (0, 0))[1] > 0:
+                    log.debug("handshake with %s:%d failed again: %s: %s", *self.target, cause, e)
+                else:
+                    log.warning("sending to %s:%d (vehicle %s) failed: %s: %s", *self.target, self.vid,
+                                cause, e)
         finally:
             self.link.close()
             if self.vid is not None:
                 svc.peers.disconnected(self.vid)
-            svc._unregister(self)
+            svc._unregister(self, handshake_failed=self.link.peer is None)
 
     def _run(self) -> None:
         svc = self.service
@@ -326,7 +357,8 @@ class _Sender:
             return
         self.vid = hello.vehicle_id
         if not svc._register(self.vid, self):
-            self.vid = None  # another sender already serves this vehicle (e.g. it has two addresses)
+            svc._mark_alias(self.target, self.vid)  # the vehicle is already served at another address
+            self.vid = None
             return
         svc.peers.hello(self.vid, hello.instance)
         svc.peers.seen(self.vid, *self.target, connected=True)

@@ -131,6 +131,7 @@ class MapServer:
         self._lock = threading.Lock()
         self._accept_thread: threading.Thread | None = None
         self.refused_busy = 0
+        self.accepted = 0
         self.instance = int.from_bytes(os.urandom(8), "little")
         """Random per server: tells peers this daemon restarted (and lost what it had received)."""
 
@@ -192,6 +193,7 @@ class MapServer:
                     return
                 time.sleep(0.05)
                 continue
+            self.accepted += 1
             with self._lock:
                 per_address = self._per_address.get(addr[0], 0)
             if per_address >= self.settings.max_connections_per_address or \
@@ -404,11 +406,12 @@ class PeerLink:
             raise MtpError("block_size", f"peer uses block size {bs}, this end uses {s.block_size}; "
                                          f"both ends must agree (setting sharing.block_size)")
         frame = head + self._recv_exact(bs - mtp.HEAD.size, s.handshake_timeout)
-        self.peer = mtp.parse_hello(frame)
-        if self.peer.keyed != (s.swarm_key is not None):
-            raise MtpError("auth", f"swarm key mismatch: peer key {'on' if self.peer.keyed else 'off'}, "
+        peer = mtp.parse_hello(frame)
+        if peer.keyed != (s.swarm_key is not None):
+            raise MtpError("auth", f"swarm key mismatch: peer key {'on' if peer.keyed else 'off'}, "
                                    f"ours {'on' if s.swarm_key else 'off'}")
-        return self.peer
+        self.peer = peer  # set only once the handshake succeeded
+        return peer
 
     def send_map(self, message) -> tuple[int, float]:
         """Send one message as an MTP transfer; return (ack status, seconds until the ack)."""
