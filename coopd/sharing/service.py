@@ -172,6 +172,17 @@ class SharingService:
                     out.append((m.vehicle_id, m.version, m.data))
         return out
 
+    def decode(self, vehicle_id: int):
+        """(OccupancyGrid, MapMeta) of the stored map of `vehicle_id`, decoded now within the limits
+        (received maps rest serialized until the merger asks); None if none is held."""
+        from . import wire
+
+        stored = self.received.get(vehicle_id)
+        if stored is None:
+            return None
+        s = self.config.transport
+        return wire.decode_map(stored.data, wire.DecodeLimits(max_cells=s.max_cells, max_bytes=s.max_bytes))
+
     # ------------------------------------------------------------------ receiving
     def _accept(self, arrival: Arrival) -> int:
         """Check a complete transfer, store it if newer; Rejected drops it (counted by the server)."""

@@ -16,6 +16,20 @@ from coopd.sharing.service import SharingConfig, SharingService
 from coopd.sharing.transport import TransportSettings
 
 
+def real_map(vid: int, version: int, size: int) -> bytes:
+    """A real coopd map message (wire.encode_map) of a deterministic grid with about `size` cells."""
+    import numpy as np
+
+    from coopd.grid import OccupancyGrid
+    from coopd.sharing import wire
+
+    side = max(4, round((size / 20) ** 0.5))
+    rng = np.random.default_rng(vid * 1000 + version)
+    cells = rng.choice(np.array([-1, -1, -1, 0, 0, 40, 100], dtype=np.int8), (side, side, 20))
+    return wire.encode_map(OccupancyGrid(cells, 0.1, (-side // 2, -side // 2, 0)),
+                           wire.MapMeta(vid, version, float(version)))
+
+
 def payload(vid: int, version: int, size: int) -> bytes:
     seed = hashlib.sha256(f"{vid}/{version}".encode()).digest()
     return (seed * (size // len(seed) + 1))[:size]
@@ -32,6 +46,7 @@ def main() -> None:
     ap.add_argument("--relay", action="store_true")
     ap.add_argument("--grace", type=float, default=30.0)
     ap.add_argument("--max-inflight-mb", type=int, default=512)
+    ap.add_argument("--real", action="store_true", help="real wire map messages (inspect + full decode)")
     ap.add_argument("--max-connections", type=int, default=32)
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
@@ -45,7 +60,13 @@ def main() -> None:
     cfg = SharingConfig(vehicle_id=a.vid, listen_host=a.host, port=a.port, peers=(a.peers,),
                         peer_ports=(a.port,), scan_period=0.3, grace_period=a.grace, relay=a.relay,
                         transport=settings)
-    svc = SharingService(cfg, inspect=tm.inspect).start()
+    if a.real:
+        from coopd.sharing.service import wire_inspect, wire_verifier
+
+        svc = SharingService(cfg, inspect=wire_inspect,
+                             verify=wire_verifier(settings.max_cells, settings.max_bytes)).start()
+    else:
+        svc = SharingService(cfg, inspect=tm.inspect).start()
     print("ready", *svc.address, flush=True)
     for line in sys.stdin:
         cmd = line.split()
@@ -53,7 +74,9 @@ def main() -> None:
             continue
         if cmd[0] == "publish":
             version, size = int(cmd[1]), int(cmd[2])
-            svc.publish(tm.make(a.vid, version, payload(a.vid, version, size)), version)
+            message = (real_map(a.vid, version, size) if a.real
+                       else tm.make(a.vid, version, payload(a.vid, version, size)))
+            svc.publish(message, version)
             print("ok", flush=True)
         elif cmd[0] == "status":
             st = svc.stats()
