@@ -74,10 +74,25 @@ class Vehicle:
     )
     camera_path: str | None = None
 
+    sim: Simulation | None = field(default=None, repr=False)
+
     @property
     def system_id(self) -> int:
         """MAVLink system id (index + 1)."""
         return self.index + 1
+
+    def true_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """True world position and quaternion (w, x, y, z)."""
+        return self.sim.true_pose(self.index)
+
+    def true_trajectory(self) -> np.ndarray:
+        """Logged true trajectory: rows (t, x, y, z, qw, qx, qy, qz)."""
+        return self.sim.trajectory(self.index)
+
+    @property
+    def mavlink_endpoint(self) -> tuple[str, int] | None:
+        """(host, port) the vehicle's MAVLink socket is bound to, if MAVLink is on."""
+        return None if self.link is None else ("127.0.0.1", self.link.bound_port)
 
 
 class Simulation:
@@ -153,6 +168,7 @@ class Simulation:
                 odo,
                 cam,
             )
+            v.sim = self
             self.vehicles.append(v)
         self._setup_io(mavlink, mavlink_base_port, camera_dir, camera_tcp_base_port)
         self._record_all()

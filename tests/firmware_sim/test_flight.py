@@ -139,3 +139,12 @@ def test_same_seed_same_flight(house):
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
     assert not np.array_equal(a[0], c[0])  # another seed drifts differently, so flies differently
+
+
+def test_vehicle_handles_expose_truth(house):
+    sim = Simulation(house, 2, seed=0, mavlink=False, camera=None)
+    sim.step(0.2)
+    p, q = sim.vehicle(1).true_pose()
+    np.testing.assert_allclose(p[:2], sim.vehicle(1).true_start_pose[:2], atol=1e-3)
+    assert sim.vehicle(1).true_trajectory().shape[1] == 8
+    assert sim.vehicle(1).mavlink_endpoint is None
