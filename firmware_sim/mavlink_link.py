@@ -128,6 +128,7 @@ class MavlinkLink:
             mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
         }
         self._interval_reply = (0, -1)
+        self._covariances = self._covariance_lists()
 
     # ------------------------------------------------------------------ plumbing
 
@@ -272,15 +273,7 @@ class MavlinkLink:
     def _odometry(self, t: float):
         p, r, v, w, _ = self._report(t)
         v_body = r.T @ v
-        n = self.v.odometry.noise
-        pc = [math.nan] * 21
-        vc = [math.nan] * 21
-        for k, sig in zip((0, 6, 11), (n.pos_sigma_m,) * 3, strict=True):
-            pc[k] = max(sig, 1e-3) ** 2
-        for k in (15, 18, 20):
-            pc[k] = max(n.att_sigma_rad, 1e-3) ** 2
-        for k in (0, 6, 11):
-            vc[k] = max(n.vel_sigma_m_s, 1e-3) ** 2
+        pc, vc = self._covariances
         return self.tx.odometry_encode(
             int(t * 1e6),
             mav.MAV_FRAME_LOCAL_NED,
@@ -295,6 +288,17 @@ class MavlinkLink:
             mav.MAV_ESTIMATOR_TYPE_VIO,
             100,
         )
+
+    def _covariance_lists(self) -> tuple[list[float], list[float]]:
+        """ODOMETRY's pose and velocity covariances (upper triangles) from the noise model."""
+        n = self.v.odometry.noise
+        pc, vc = [math.nan] * 21, [math.nan] * 21
+        for k in (0, 6, 11):
+            pc[k] = max(n.pos_sigma_m, 1e-3) ** 2
+            vc[k] = max(n.vel_sigma_m_s, 1e-3) ** 2
+        for k in (15, 18, 20):
+            pc[k] = max(n.att_sigma_rad, 1e-3) ** 2
+        return pc, vc
 
     def _global_position(self, t: float):
         p, r, v, _, p_enu = self._report(t)

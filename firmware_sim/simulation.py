@@ -247,7 +247,7 @@ class Simulation:
     def estimated_state(self, v: Vehicle) -> EstimatedState:
         """The noise-free drifting estimate the flight controller acts on."""
         q = self.data.qpos[v.qpos_adr : v.qpos_adr + 7]
-        rot_w = quat_to_mat(q[3:])
+        rot_w = quat_to_mat(q[3:])  # from qpos (current), not xmat (kinematics of the previous step)
         vel_w = self.data.qvel[v.qvel_adr : v.qvel_adr + 3]
         omega = self.data.qvel[v.qvel_adr + 3 : v.qvel_adr + 6].copy()
         p, r, vel = v.odometry.estimate(self.time, q[:3], rot_w, vel_w)
