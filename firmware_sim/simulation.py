@@ -257,6 +257,8 @@ class Simulation:
 
     def step(self, seconds: float = PHYSICS_DT) -> None:
         """Advance the simulation by at least `seconds` of simulated time (in-process, no pacing)."""
+        if self._thread is not None:
+            raise RuntimeError("step() drives the clock in-process; the real-time thread is running")
         n = max(1, int(round(seconds / PHYSICS_DT)))
         for _ in range(n):
             with self.lock:
