@@ -36,6 +36,7 @@ class OdometryModel:
     """Maps true world state to the vehicle's estimate in its reporting frame (ENU-like, origin o, yaw)."""
 
     def __init__(self, frame_origin, frame_yaw: float, noise: NoiseConfig, rng: np.random.Generator):
+        """Draw this vehicle's drift once from its own generator; noise gets a generator of its own."""
         self.origin = np.asarray(frame_origin, float)
         self.frame_rot = rot_z(frame_yaw)
         self.noise = noise
