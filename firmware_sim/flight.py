@@ -313,6 +313,14 @@ class FlightController:
                 return self.hold
             if item.command in (NAV_WAYPOINT, NAV_LOITER_TIME) and item.pos is not None:
                 target = item.pos.copy()
+                if s.pos[2] < self.home[2] + 0.5 and target[2] > s.pos[2] + 0.3:
+                    # PX4-like implicit takeoff: climb vertically before heading off on the ground.
+                    h = self.hold.pos
+                    climbing = h is not None and h[2] == target[2] and np.linalg.norm(h[:2] - s.pos[:2]) < 0.5
+                    if not climbing:  # fix the climb's xy once, then hold it
+                        self.hold = Setpoint(pos=np.array([s.pos[0], s.pos[1], target[2]]), yaw=self.yaw_sp)
+                    if self.landed or np.linalg.norm(target[:2] - s.pos[:2]) > 0.5:
+                        return self.hold
                 if np.linalg.norm(target - s.pos) < self.param("NAV_ACC_RAD", 0.3):
                     if self.mission_hold_until is None:
                         self.mission_hold_until = t + item.hold_s

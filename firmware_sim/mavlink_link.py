@@ -26,9 +26,9 @@ DEFAULT_RATES_HZ = {
     mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
     mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
     mav.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
-    mav.MAVLINK_MSG_ID_ATTITUDE: 30.0,
-    mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 30.0,
-    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
+    mav.MAVLINK_MSG_ID_ATTITUDE: 20.0,
+    mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 20.0,
+    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 20.0,
     mav.MAVLINK_MSG_ID_ODOMETRY: 30.0,
     mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
     mav.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
@@ -157,6 +157,7 @@ class MavlinkLink:
                 self.stats["rx_errors"] += 1
                 break
             self.stats["rx_datagrams"] += 1
+            self._reset_parser()
             try:
                 msgs = self.rx.parse_buffer(data) or []
             except Exception:  # hostile bytes: pymavlink may raise on anything malformed
@@ -168,6 +169,15 @@ class MavlinkLink:
                 except Exception:  # a field combination we did not foresee must not stop the vehicle
                     self.stats["rx_handler_errors"] += 1
         self.mission.tick()
+
+    def _reset_parser(self) -> None:
+        """Each UDP datagram holds whole packets: never let a broken one swallow the next datagram."""
+        if self.rx.buf_index < len(self.rx.buf):
+            self.stats["rx_partial_discarded"] += 1
+        self.rx.buf = bytearray()
+        self.rx.buf_index = 0
+        self.rx.expected_length = mav.HEADER_LEN_V1 + 2
+        self.rx.have_prefix_error = False
 
     def on_sim_step(self, t: float) -> None:
         """Send due telemetry and pending events; called after every physics step."""
@@ -458,6 +468,14 @@ class MavlinkLink:
         )
         yaw = None if mask & IGNORE_YAW or not math.isfinite(m.yaw) else float(m.yaw)
         yaw_rate = None if mask & IGNORE_YAW_RATE or not math.isfinite(m.yaw_rate) else float(m.yaw_rate)
+        if (
+            np.isinf(pos).any()
+            or np.isinf(vel).any()
+            or (yaw is not None and abs(yaw) > 100)
+            or (yaw_rate is not None and abs(yaw_rate) > 100)
+        ):
+            self.stats["setpoint_invalid"] += 1
+            return
         s = self.sim.estimated_state(self.v)
         here = ENU_TO_NED @ s.pos
         yaw_now = euler_zyx(enu_flu_to_ned_frd(s.rot))[2]

@@ -74,10 +74,25 @@ class Vehicle:
     )
     camera_path: str | None = None
 
+    sim: Simulation | None = field(default=None, repr=False)
+
     @property
     def system_id(self) -> int:
         """MAVLink system id (index + 1)."""
         return self.index + 1
+
+    def true_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """True world position and quaternion (w, x, y, z)."""
+        return self.sim.true_pose(self.index)
+
+    def true_trajectory(self) -> np.ndarray:
+        """Logged true trajectory: rows (t, x, y, z, qw, qx, qy, qz)."""
+        return self.sim.trajectory(self.index)
+
+    @property
+    def mavlink_endpoint(self) -> tuple[str, int] | None:
+        """(host, port) the vehicle's MAVLink socket is bound to, if MAVLink is on."""
+        return None if self.link is None else ("127.0.0.1", self.link.bound_port)
 
 
 class Simulation:
@@ -122,13 +137,14 @@ class Simulation:
         self._render_thread: threading.Thread | None = None
         self._render_jobs: deque = deque()
         self._render_cv = threading.Condition()
+        self.failure: Exception | None = None
         self.frame_sink = None  # optional callable(vehicle_index, header, z16) for in-process consumers
         self._running = False
         self.wall_started = 0.0
         self.lag_s = 0.0
         self.vehicles: list[Vehicle] = []
         root = np.random.SeedSequence(self.seed)
-        for i, (pose, ss) in enumerate(zip(poses, root.spawn(n_vehicles), strict=True)):
+        for i, ss in enumerate(root.spawn(n_vehicles)):
             rng_odo, rng_cam = (np.random.default_rng(s) for s in ss.spawn(2))
             body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, f"quad{i}")
             jnt = self.model.body_jntadr[body]
@@ -152,6 +168,7 @@ class Simulation:
                 odo,
                 cam,
             )
+            v.sim = self
             self.vehicles.append(v)
         self._setup_io(mavlink, mavlink_base_port, camera_dir, camera_tcp_base_port)
         self._record_all()
@@ -211,9 +228,9 @@ class Simulation:
         """Teleport vehicle i (at rest, level, given heading) for tests; updates derived quantities."""
         v = self.vehicles[i]
         with self.lock:
-            self.data.qpos[v.qpos_adr: v.qpos_adr + 3] = pos
-            self.data.qpos[v.qpos_adr + 3: v.qpos_adr + 7] = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
-            self.data.qvel[v.qvel_adr: v.qvel_adr + 6] = 0.0
+            self.data.qpos[v.qpos_adr : v.qpos_adr + 3] = pos
+            self.data.qpos[v.qpos_adr + 3 : v.qpos_adr + 7] = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+            self.data.qvel[v.qvel_adr : v.qvel_adr + 6] = 0.0
             mujoco.mj_forward(self.model, self.data)
 
     def true_velocity(self, i: int) -> np.ndarray:
@@ -275,10 +292,10 @@ class Simulation:
 
     def _capture(self, v: Vehicle) -> None:
         """Take a depth frame now: rendered inline, or queued for the render thread in real-time mode."""
-        if v.publisher is None and self.frame_sink is None:
-            return
         seq, t_us = v.camera_seq, int(round(self.time * 1e6))
         v.camera_seq += 1
+        if self.frame_sink is None and (v.publisher is None or not v.publisher.clients):
+            return  # nobody listens: skip the rays, keep the frame counter
         if self._render_thread is None:
             self._deliver(v, seq, t_us, v.camera.render_z16(self.data))
             return
@@ -351,6 +368,15 @@ class Simulation:
                     v.publisher.poll()
 
     def _run(self) -> None:
+        """Thread body: run the loop; an internal error is kept in self.failure for the owner to see."""
+        try:
+            self._loop()
+        except Exception as e:  # a bug in the sim itself: stop stepping, but let the owner know why
+            self.failure = e
+            self._running = False
+            raise
+
+    def _loop(self) -> None:
         """Real-time loop: keep simulated time at wall time x speed, serving I/O while waiting."""
         wall0, sim0 = time.monotonic(), self.time
         self.wall_started = wall0

@@ -90,6 +90,8 @@ def run_sim(world, n: int, wall_s: float, speed: float) -> dict:
         "lag_behind_requested_s": round(lag, 3),
         "rays_per_s": round((f1 - f0) * cam.width * cam.height / wall),
         "process_cpu_s_per_wall_s": round(cpu / wall, 3),
+        # Load-independent view: CPU seconds (all threads) spent per simulated second.
+        "cpu_s_per_sim_s": round(cpu / sim_s, 4) if sim_s > 0 else None,
     }
 
 
@@ -100,20 +102,27 @@ def main() -> int:
     ap.add_argument("--wall", type=float, default=8.0, help="wall seconds measured per configuration")
     ap.add_argument("--speed", type=float, default=50.0, help="requested speed (high = run flat out)")
     a = ap.parse_args()
+    load_at_start = round(os.getloadavg()[0], 2)  # the machine is shared: context for the figures
     world = build_world(a.world, 1)
     ray_ms = bare_multiray_ms(world, 40)
     step_rate = bare_step_rate(world, 2.0)
     runs = [run_sim(world, n, a.wall, a.speed) for n in (1, 3, 6)]
+    ray_ms_after = bare_multiray_ms(world, 40)  # load drifts on a shared machine: bracket the runs
+    ray_ms = (ray_ms + ray_ms_after) / 2
     cam = CameraConfig()
     peer_rays = cam.width * cam.height / (ray_ms / 1000)
     for r in runs:
         r["rays_per_s_vs_bare_multiray"] = round(r["rays_per_s"] / peer_rays, 3)
+        bare_cost = r["vehicles"] * cam.rate_hz * ray_ms / 1000  # CPU s per sim s for the rays alone
+        r["cpu_per_sim_s_vs_bare_rays"] = round(r["cpu_s_per_sim_s"] / bare_cost, 3)
     three = next(r for r in runs if r["vehicles"] == 3)
     out = {
         "benchmark": "sim",
         "world": a.world,
         "cpu_count": os.cpu_count(),
+        "load_average_1min_at_start": load_at_start,
         "peer_bare_multiray_ms_per_frame": round(ray_ms, 3),
+        "peer_bare_multiray_ms_before_after": [round(2 * ray_ms - ray_ms_after, 3), round(ray_ms_after, 3)],
         "peer_bare_multiray_rays_per_s": round(peer_rays),
         "peer_bare_mj_step_per_s_one_quad": round(step_rate),
         "sim_steps_per_s_one_vehicle_vs_bare_mj_step": round(

@@ -74,7 +74,7 @@ def test_bookstore_round_table_is_round():
     layer = occ[:, :, k]
     ix, iy = cell_of(origin, (x, y, z), 0.05)[:2]
     r_cells = int(top.radius / 0.05)
-    disc = layer[ix - r_cells - 3: ix + r_cells + 4, iy - r_cells - 3: iy + r_cells + 4]
+    disc = layer[ix - r_cells - 3 : ix + r_cells + 4, iy - r_cells - 3 : iy + r_cells + 4]
     area = disc.sum() * 0.05**2
     assert abs(area - math.pi * top.radius**2) / (math.pi * top.radius**2) < 0.15
     # Corners of the bounding square are free: it is a disc, not a box.
@@ -107,7 +107,7 @@ def test_start_poses_are_clear_and_separated(name):
     poses = w.start_poses(6)
     for i, p in enumerate(poses):
         assert w.is_clear(p[0], p[1], 0.5)
-        for q in poses[i + 1:]:
+        for q in poses[i + 1 :]:
             assert math.hypot(p[0] - q[0], p[1] - q[1]) >= 1.0
 
 
