@@ -358,9 +358,9 @@ class VehicleLink:
         latest = self.poses.latest()
         span = self.poses.span()
         counters = dict(self.counters)
-        counters.update({f"odometry_{k}": v for k, v in self.odometry.counters.items()})
-        counters.update({f"clock_{k}": v for k, v in self.clock.counters.items()})
-        counters.update({f"transport_{k}": v for k, v in self.transport.counters.items()})
+        counters.update({f"odometry_{k}": v for k, v in dict(self.odometry.counters).items()})
+        counters.update({f"clock_{k}": v for k, v in dict(self.clock.counters).items()})
+        counters.update({f"transport_{k}": v for k, v in dict(self.transport.counters).items()})
         return {
             "connection": self.config.connection,
             "link": self.state,
