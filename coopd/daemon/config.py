@@ -17,10 +17,10 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from coopd.daemon.control import DEFAULT_CONTROL_SOCKET
 from coopd.mapping import MapperConfig
 
 DEFAULT_CONFIG_PATH = Path("/etc/coopd/coopd.toml")
-DEFAULT_CONTROL_SOCKET = "/run/coopd/control.sock"
 MAX_CONFIG_BYTES = 1 << 20
 MAX_PEER_TARGETS = 4096
 LOG_LEVELS = ("debug", "info", "warning", "error")

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 log = logging.getLogger("coopd.daemon")
 
 PROTOCOL_VERSION = 1
+DEFAULT_CONTROL_SOCKET = "/run/coopd/control.sock"
 LENGTH = struct.Struct(">I")
 DEFAULT_MAX_REQUEST = 64 * 1024
 DEFAULT_MAX_REPLY = 16 * 1024 * 1024
@@ -146,7 +147,7 @@ class ControlServer:
         self._thread = threading.Thread(target=self._run, name="coopd-control", daemon=True)
         self._thread.start()
         log.info(
-            "control socket listening on %s (mode %o, max %d clients, %d-byte requests, %.1f s timeout)",
+            "control socket listening on %s (mode %04o, max %d clients, %d-byte requests, %.1f s timeout)",
             self.path,
             self.mode,
             self.max_clients,
@@ -515,8 +516,9 @@ def _peer_uid(sock: socket.socket) -> int:
 
 
 # ------------------------------------------------------------------------------------------ client
-class ControlError(Exception):
-    """coopctl could not get an answer; the message is meant for the operator."""
+class ControlError(OSError):
+    """coopctl could not get an answer; the message is meant for the operator. An OSError, so
+    that coopctl reports it like any other I/O failure (one line, exit code 1)."""
 
 
 class DaemonNotRunning(ControlError):
