@@ -23,6 +23,7 @@ import logging
 import os
 import selectors
 import socket
+import stat
 import struct
 import threading
 import time
@@ -34,6 +35,8 @@ log = logging.getLogger("coopd.daemon")
 
 PROTOCOL_VERSION = 1
 DEFAULT_CONTROL_SOCKET = "/run/coopd/control.sock"
+MAX_SOCKET_PATH = 90
+"""Bytes: sun_path holds 107, and the socket is bound first under PATH.<pid>.tmp."""
 LENGTH = struct.Struct(">I")
 DEFAULT_MAX_REQUEST = 64 * 1024
 DEFAULT_MAX_REPLY = 16 * 1024 * 1024
@@ -110,6 +113,8 @@ class ControlServer:
         if max_clients < 1 or max_request_bytes < 64 or timeout_s <= 0:
             raise ValueError("max_clients >= 1, max_request_bytes >= 64 and timeout_s > 0 required")
         self.path = os.fspath(path)
+        if len(os.fsencode(self.path)) > MAX_SOCKET_PATH:
+            raise ValueError(f"control socket path {self.path!r} is longer than {MAX_SOCKET_PATH} bytes")
         self.handlers = dict(handlers)
         self.handlers.setdefault("ping", self._ping)
         self.max_request_bytes = max_request_bytes
@@ -218,8 +223,6 @@ class ControlServer:
         return sock
 
     def _remove_stale(self) -> None:
-        import stat
-
         if not stat.S_ISSOCK(os.lstat(self.path).st_mode):
             raise FileExistsError(f"{self.path} exists and is not a socket; refusing to replace it")
         probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
