@@ -25,12 +25,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from tests.sharing.realistic_maps import building_map  # noqa: E402
-
 from coopd.grid import OccupancyGrid  # noqa: E402
 from coopd.sharing import wire  # noqa: E402
 from coopd.sharing.service import SharingConfig, SharingService, wire_inspect, wire_verifier  # noqa: E402
 from coopd.sharing.transport import PeerLink, TransportSettings  # noqa: E402
+from tests.sharing.realistic_maps import building_map  # noqa: E402
 
 SIZES = {"6M": (250, 250, 100), "25M": (500, 500, 100), "110M": (1050, 1050, 100)}
 """Thesis Table 4 shapes: bookstore (6.25 M), hospital UAV 1 (25 M), racetrack UAV 1 (110.25 M)."""
