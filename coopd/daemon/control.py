@@ -35,6 +35,7 @@ log = logging.getLogger("coopd.daemon")
 
 PROTOCOL_VERSION = 1
 DEFAULT_CONTROL_SOCKET = "/run/coopd/control.sock"
+LISTEN_BACKLOG = 256
 MAX_SOCKET_PATH = 90
 """Bytes: sun_path holds 107, and the socket is bound first under PATH.<pid>.tmp."""
 LENGTH = struct.Struct(">I")
@@ -123,7 +124,7 @@ class ControlServer:
         self.mode = mode
         self.group = group
         self.counters = dict.fromkeys(self.COUNTERS, 0)
-        self.evict_after_s = min(0.05, timeout_s / 2)
+        self.evict_after_s = min(0.02, timeout_s / 2)
         """A connection that has not sent its whole request after this may be evicted when full."""
         self._accepting = False
         self._workers = workers
@@ -210,7 +211,7 @@ class ControlServer:
             os.chmod(tmp, self.mode)
             if self.group is not None:
                 os.chown(tmp, -1, self.group)
-            sock.listen(64)
+            sock.listen(LISTEN_BACKLOG)
             os.rename(tmp, self.path)
         except BaseException:
             sock.close()
@@ -325,6 +326,7 @@ class ControlServer:
             self._conns[sock.fileno()] = conn
             self._sel.register(sock, selectors.EVENT_READ, conn)
             self.counters["accepted"] += 1
+            self._read(conn)  # coopctl sends at once: a complete request leaves the evictable set now
 
     def _evict_one(self) -> bool:
         """Drop the oldest connection still sending its request after evict_after_s (a slow or
@@ -555,7 +557,7 @@ def request(
     sock.settimeout(timeout_s)
     try:
         try:
-            sock.connect(path)
+            _connect(sock, path, timeout_s)
         except FileNotFoundError:
             raise DaemonNotRunning(
                 f"coopd is not running: no control socket at {path} "
@@ -604,6 +606,22 @@ def request(
             raise ControlError(f"garbled reply from {path}: {e}") from None
     finally:
         sock.close()
+
+
+def _connect(sock: socket.socket, path: str, timeout_s: float) -> None:
+    """connect(), waiting while the daemon's backlog is full (a unix socket then fails at once
+    with EAGAIN instead of blocking, as soon as the socket has a timeout)."""
+    deadline = time.monotonic() + timeout_s
+    delay = 0.005
+    while True:
+        try:
+            sock.connect(path)
+            return
+        except BlockingIOError:
+            if time.monotonic() + delay > deadline:
+                raise TimeoutError(f"the daemon's connection backlog stayed full for {timeout_s} s") from None
+            time.sleep(delay)
+            delay = min(delay * 2, 0.1)
 
 
 def _recv_exact(sock: socket.socket, n: int) -> bytes:

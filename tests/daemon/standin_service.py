@@ -23,7 +23,7 @@ from coopd.daemon.control import ControlServer
 from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.threads import ThreadPriorities
 from coopd.grid import OccupancyGrid
-from coopd.sharing.wire import MapMeta
+from coopd.sharing.wire import MapMeta, encode_map
 
 log = logging.getLogger("coopd.daemon")
 
@@ -45,6 +45,7 @@ def main(argv=None) -> int:
     grid = cp.grid if cp else OccupancyGrid.empty((40, 40, 20), config.mapping.resolution)
     version = cp.meta.version if cp else 0
     budget.reserve("local", grid.size)
+    encode_map(grid, MapMeta(config.vehicle.id))  # compile/load the encoder now, not during SIGTERM
     beat = {"t": time.monotonic(), "hung": False, "restarts_seen": os.environ.get("COOPD_RESTARTS", "")}
     stop = threading.Event()
 
