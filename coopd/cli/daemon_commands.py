@@ -12,10 +12,12 @@ import sys
 from pathlib import Path
 
 from coopd.daemon import control
-from coopd.daemon.config import DEFAULT_CONTROL_SOCKET
-from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
-from coopd.io.atomic import write_atomic
-from coopd.sharing.wire import DecodeLimits, decode_map
+from coopd.daemon.control import DEFAULT_CONTROL_SOCKET
+
+# Map decoding and exports (numpy, numba kernels) load only when dump-map runs: status, peers and
+# merge-now start fast and need no numba cache directory.
+MAX_DUMP_BYTES = 512 * 1024 * 1024
+MAX_DUMP_CELLS = 400_000_000
 
 SOCKET_ENV = "COOPD_SOCKET"
 FORMATS = ("cmap", "ply", "png", "bt")
@@ -64,8 +66,8 @@ def register(subparsers) -> None:
         metavar="METRES",
         help="png only: horizontal slice at this height instead of the top view",
     )
-    dump.add_argument("--max-bytes", type=int, default=DecodeLimits.max_bytes, help="refuse larger maps")
-    dump.add_argument("--max-cells", type=int, default=DecodeLimits.max_cells, help="refuse larger maps")
+    dump.add_argument("--max-bytes", type=int, default=MAX_DUMP_BYTES, help="refuse larger maps")
+    dump.add_argument("--max-cells", type=int, default=MAX_DUMP_CELLS, help="refuse larger maps")
     _socket_args(dump, timeout=60.0)
     dump.set_defaults(handler=run_dump_map)
 
@@ -82,14 +84,8 @@ def _socket_args(p, timeout: float = 10.0) -> None:
 
 
 def _call(args, cmd: str, cmd_args: dict | None = None, max_blob_bytes: int = 0):
-    from .coopctl import CommandError
-
-    try:
-        return control.request(
-            args.socket, cmd, cmd_args, timeout_s=args.timeout, max_blob_bytes=max_blob_bytes
-        )
-    except control.ControlError as e:
-        raise CommandError(str(e)) from None
+    """One request to the daemon; ControlError (an OSError) carries the operator's message."""
+    return control.request(args.socket, cmd, cmd_args, timeout_s=args.timeout, max_blob_bytes=max_blob_bytes)
 
 
 # ------------------------------------------------------------------------------------------ status
@@ -220,7 +216,9 @@ def _num(v, digits: int) -> str:
 
 
 def _mib(v) -> str:
-    return "-" if not isinstance(v, (int, float)) else f"{v / 2**20:.1f} MiB"
+    if not isinstance(v, (int, float)):
+        return "-"
+    return f"{v / 2**20:.1f} MiB" if abs(v) >= 2**20 or v == 0 else f"{v / 1024:.1f} KiB"
 
 
 def _duration(s) -> str:
@@ -284,6 +282,10 @@ def output_format(path: Path, to: str | None) -> str:
 
 
 def run_dump_map(args) -> int:
+    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
+    from coopd.io.atomic import write_atomic
+    from coopd.sharing.wire import DecodeLimits, decode_map
+
     fmt = output_format(args.output, args.to)
     if args.z is not None and fmt != "png":
         raise ValueError("--z applies to png output only")

@@ -17,10 +17,10 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
 
 DEFAULT_CONFIG_PATH = Path("/etc/coopd/coopd.toml")
-DEFAULT_CONTROL_SOCKET = "/run/coopd/control.sock"
 MAX_CONFIG_BYTES = 1 << 20
 MAX_PEER_TARGETS = 4096
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -76,6 +76,13 @@ def _absolute_path(allow_empty: bool = False):
         return None
 
     return check
+
+
+def _socket_path(v: str):
+    problem = _absolute_path()(v)
+    if problem is None and len(v.encode()) > MAX_SOCKET_PATH:
+        problem = f"{v!r} is longer than {MAX_SOCKET_PATH} bytes (unix socket path limit)"
+    return problem
 
 
 def _port_ok(text: str) -> bool:
@@ -252,7 +259,7 @@ class DaemonConfig:
         "checkpoints live here (systemd StateDirectory)", "/var/lib/coopd", _absolute_path()
     )
     control_socket: str = _key(
-        "unix socket coopctl talks to (in the RuntimeDirectory)", DEFAULT_CONTROL_SOCKET, _absolute_path()
+        "unix socket coopctl talks to (in the RuntimeDirectory)", DEFAULT_CONTROL_SOCKET, _socket_path
     )
     control_max_clients: int = _key("coopctl connections served at once", 8, _between(1, 256))
     control_timeout_s: float = _key(

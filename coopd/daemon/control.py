@@ -23,6 +23,7 @@ import logging
 import os
 import selectors
 import socket
+import stat
 import struct
 import threading
 import time
@@ -33,6 +34,10 @@ from dataclasses import dataclass
 log = logging.getLogger("coopd.daemon")
 
 PROTOCOL_VERSION = 1
+DEFAULT_CONTROL_SOCKET = "/run/coopd/control.sock"
+LISTEN_BACKLOG = 256
+MAX_SOCKET_PATH = 90
+"""Bytes: sun_path holds 107, and the socket is bound first under PATH.<pid>.tmp."""
 LENGTH = struct.Struct(">I")
 DEFAULT_MAX_REQUEST = 64 * 1024
 DEFAULT_MAX_REPLY = 16 * 1024 * 1024
@@ -109,6 +114,8 @@ class ControlServer:
         if max_clients < 1 or max_request_bytes < 64 or timeout_s <= 0:
             raise ValueError("max_clients >= 1, max_request_bytes >= 64 and timeout_s > 0 required")
         self.path = os.fspath(path)
+        if len(os.fsencode(self.path)) > MAX_SOCKET_PATH:
+            raise ValueError(f"control socket path {self.path!r} is longer than {MAX_SOCKET_PATH} bytes")
         self.handlers = dict(handlers)
         self.handlers.setdefault("ping", self._ping)
         self.max_request_bytes = max_request_bytes
@@ -117,7 +124,7 @@ class ControlServer:
         self.mode = mode
         self.group = group
         self.counters = dict.fromkeys(self.COUNTERS, 0)
-        self.evict_after_s = min(0.05, timeout_s / 2)
+        self.evict_after_s = min(0.02, timeout_s / 2)
         """A connection that has not sent its whole request after this may be evicted when full."""
         self._accepting = False
         self._workers = workers
@@ -146,7 +153,7 @@ class ControlServer:
         self._thread = threading.Thread(target=self._run, name="coopd-control", daemon=True)
         self._thread.start()
         log.info(
-            "control socket listening on %s (mode %o, max %d clients, %d-byte requests, %.1f s timeout)",
+            "control socket listening on %s (mode %04o, max %d clients, %d-byte requests, %.1f s timeout)",
             self.path,
             self.mode,
             self.max_clients,
@@ -204,7 +211,7 @@ class ControlServer:
             os.chmod(tmp, self.mode)
             if self.group is not None:
                 os.chown(tmp, -1, self.group)
-            sock.listen(64)
+            sock.listen(LISTEN_BACKLOG)
             os.rename(tmp, self.path)
         except BaseException:
             sock.close()
@@ -217,8 +224,6 @@ class ControlServer:
         return sock
 
     def _remove_stale(self) -> None:
-        import stat
-
         if not stat.S_ISSOCK(os.lstat(self.path).st_mode):
             raise FileExistsError(f"{self.path} exists and is not a socket; refusing to replace it")
         probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -321,6 +326,7 @@ class ControlServer:
             self._conns[sock.fileno()] = conn
             self._sel.register(sock, selectors.EVENT_READ, conn)
             self.counters["accepted"] += 1
+            self._read(conn)  # coopctl sends at once: a complete request leaves the evictable set now
 
     def _evict_one(self) -> bool:
         """Drop the oldest connection still sending its request after evict_after_s (a slow or
@@ -515,8 +521,9 @@ def _peer_uid(sock: socket.socket) -> int:
 
 
 # ------------------------------------------------------------------------------------------ client
-class ControlError(Exception):
-    """coopctl could not get an answer; the message is meant for the operator."""
+class ControlError(OSError):
+    """coopctl could not get an answer; the message is meant for the operator. An OSError, so
+    that coopctl reports it like any other I/O failure (one line, exit code 1)."""
 
 
 class DaemonNotRunning(ControlError):
@@ -550,7 +557,7 @@ def request(
     sock.settimeout(timeout_s)
     try:
         try:
-            sock.connect(path)
+            _connect(sock, path, timeout_s)
         except FileNotFoundError:
             raise DaemonNotRunning(
                 f"coopd is not running: no control socket at {path} "
@@ -599,6 +606,22 @@ def request(
             raise ControlError(f"garbled reply from {path}: {e}") from None
     finally:
         sock.close()
+
+
+def _connect(sock: socket.socket, path: str, timeout_s: float) -> None:
+    """connect(), waiting while the daemon's backlog is full (a unix socket then fails at once
+    with EAGAIN instead of blocking, as soon as the socket has a timeout)."""
+    deadline = time.monotonic() + timeout_s
+    delay = 0.005
+    while True:
+        try:
+            sock.connect(path)
+            return
+        except BlockingIOError:
+            if time.monotonic() + delay > deadline:
+                raise TimeoutError(f"the daemon's connection backlog stayed full for {timeout_s} s") from None
+            time.sleep(delay)
+            delay = min(delay * 2, 0.1)
 
 
 def _recv_exact(sock: socket.socket, n: int) -> bytes:

@@ -11,10 +11,11 @@ cells) and `verify` (optional) fully decodes them within the limits before they 
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from . import discovery, mtp
+from . import discovery, mtp, swarmkey
 from .peers import MessageSummary, PeerTable, ReceivedStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
@@ -43,6 +44,30 @@ class SharingConfig:
     max_received_bytes: int = 1 << 30
     """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
     transport: TransportSettings = field(default_factory=TransportSettings)
+
+
+_TRANSPORT_KEYS = {f for f in TransportSettings.__dataclass_fields__ if f != "swarm_key"}
+_CONFIG_KEYS = {"listen_host", "port", "peers", "peer_ports", "scan_period", "grace_period", "relay",
+                "max_vehicles", "max_received_bytes"}
+
+
+def config_from_table(vehicle_id: int, table: dict) -> SharingConfig:
+    """A SharingConfig from the [sharing] table of coopd.toml; unknown keys are an error.
+
+    `swarm_key` is a passphrase, 'hex:...' or empty (no key); `peers`/`peer_ports` are lists.
+    """
+    unknown = set(table) - _TRANSPORT_KEYS - _CONFIG_KEYS - {"swarm_key"}
+    if unknown:
+        raise ValueError(f"unknown [sharing] settings: {', '.join(sorted(unknown))}")
+    transport = {k: v for k, v in table.items() if k in _TRANSPORT_KEYS}
+    transport["swarm_key"] = swarmkey.load_key(table.get("swarm_key"))
+    fields = {k: v for k, v in table.items() if k in _CONFIG_KEYS}
+    for k in ("peers", "peer_ports"):
+        if k in fields:
+            fields[k] = tuple(fields[k])
+    config = SharingConfig(vehicle_id=vehicle_id, transport=TransportSettings(**transport), **fields)
+    discovery.parse_targets(config.peers, config.peer_ports)  # fail at load time, not at the first scan
+    return config
 
 
 def wire_inspect(data) -> MessageSummary:
@@ -88,6 +113,11 @@ class SharingService:
         self._senders: dict[int, _Sender] = {}
         self._busy_targets: set[tuple[str, int]] = set()
         self._self_targets: set[tuple[str, int]] = set()
+        self._alias_targets: dict[tuple[str, int], int] = {}
+        """Targets that reached a vehicle already served at another address -> that vehicle id."""
+        self._backoff: dict[tuple[str, int], tuple[float, int]] = {}
+        """Targets whose handshake failed -> (monotonic time of the next try, failures in a row)."""
+        self._all_senders: set[_Sender] = set()
         self._lock = threading.Lock()
         self._scanner: threading.Thread | None = None
         self.scans = 0
@@ -110,9 +140,10 @@ class SharingService:
         if self._scanner is not None:
             self._scanner.join(5)
         with self._lock:
-            senders = list(self._senders.values())
+            senders = list(self._all_senders)
         for s in senders:
             s.link.close()
+        for s in senders:
             s.thread.join(5)
         self._server.stop()
 
@@ -140,6 +171,17 @@ class SharingService:
                 if m.version > self.peers.has_version(peer_vid, m.vehicle_id):
                     out.append((m.vehicle_id, m.version, m.data))
         return out
+
+    def decode(self, vehicle_id: int):
+        """(OccupancyGrid, MapMeta) of the stored map of `vehicle_id`, decoded now within the limits
+        (received maps rest serialized until the merger asks); None if none is held."""
+        from . import wire
+
+        stored = self.received.get(vehicle_id)
+        if stored is None:
+            return None
+        s = self.config.transport
+        return wire.decode_map(stored.data, wire.DecodeLimits(max_cells=s.max_cells, max_bytes=s.max_bytes))
 
     # ------------------------------------------------------------------ receiving
     def _accept(self, arrival: Arrival) -> int:
@@ -214,14 +256,22 @@ class SharingService:
 
     def scan_once(self) -> int:
         """Probe every target without a live sender; start senders for new peers. Returns peers found."""
+        now = time.monotonic()
         with self._lock:
-            todo = [t for t in self._targets if t not in self._busy_targets and t not in self._self_targets]
+            todo = [t for t in self._targets
+                    if t not in self._busy_targets and t not in self._self_targets
+                    and self._backoff.get(t, (0.0, 0))[0] <= now
+                    and not (t in self._alias_targets and self.peers.is_connected(self._alias_targets[t]))]
         found = 0
         source = None if self.config.listen_host in ("", "0.0.0.0") else self.config.listen_host
         for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
-            with self._lock:
-                self._busy_targets.add(target)
             sender = _Sender(self, PeerLink(sock, self.config.transport, self.vehicle_id, target[0]), target)
+            with self._lock:
+                if self._stop.is_set():
+                    sock.close()
+                    break
+                self._busy_targets.add(target)
+                self._all_senders.add(sender)
             sender.thread.start()
             found += 1
         self.scans += 1
@@ -245,15 +295,26 @@ class SharingService:
             self._senders[vid] = sender
             return True
 
-    def _unregister(self, sender: "_Sender") -> None:
+    def _unregister(self, sender: "_Sender", handshake_failed: bool) -> None:
         with self._lock:
+            self._all_senders.discard(sender)
             self._busy_targets.discard(sender.target)
+            if handshake_failed:  # e.g. wrong swarm key or block size: retry later, not every scan
+                _, n = self._backoff.get(sender.target, (0.0, 0))
+                delay = min(60.0, self.config.scan_period * 2 ** min(n, 10))
+                self._backoff[sender.target] = (time.monotonic() + delay, n + 1)
+            else:
+                self._backoff.pop(sender.target, None)
             if sender.vid is not None and self._senders.get(sender.vid) is sender:
                 del self._senders[sender.vid]
 
     def _mark_self(self, target) -> None:
         with self._lock:
             self._self_targets.add(target)
+
+    def _mark_alias(self, target, vid: int) -> None:
+        with self._lock:
+            self._alias_targets[target] = vid
 
     def stats(self) -> dict:
         """Everything coopctl status shows about sharing."""
@@ -266,6 +327,7 @@ class SharingService:
             "received_bytes_held": self.received.total_bytes(),
             "open_connections": self._server.open_connections,
             "inflight_bytes": self._server.inflight_bytes,
+            "connections_accepted": self._server.accepted,
             "refused_busy": self._server.refused_busy, "scans": self.scans,
         })
         return snap
@@ -287,12 +349,16 @@ class _Sender:
             cause = getattr(e, "cause", "timeout" if isinstance(e, TimeoutError) else "cut")
             if not svc._stop.is_set():
                 svc.peers.failure(cause, self.vid, self.target[0])
-                log.warning("sending to %s:%d (vehicle %s) failed: %s: %s", *self.target, self.vid, cause, e)
+                if self.link.peer is None and svc._backoff.get(self.target, (0, 0))[1] > 0:
+                    log.debug("handshake with %s:%d failed again: %s: %s", *self.target, cause, e)
+                else:
+                    log.warning("sending to %s:%d (vehicle %s) failed: %s: %s", *self.target, self.vid,
+                                cause, e)
         finally:
             self.link.close()
             if self.vid is not None:
                 svc.peers.disconnected(self.vid)
-            svc._unregister(self)
+            svc._unregister(self, handshake_failed=self.link.peer is None)
 
     def _run(self) -> None:
         svc = self.service
@@ -302,7 +368,8 @@ class _Sender:
             return
         self.vid = hello.vehicle_id
         if not svc._register(self.vid, self):
-            self.vid = None  # another sender already serves this vehicle (e.g. it has two addresses)
+            svc._mark_alias(self.target, self.vid)  # the vehicle is already served at another address
+            self.vid = None
             return
         svc.peers.hello(self.vid, hello.instance)
         svc.peers.seen(self.vid, *self.target, connected=True)

@@ -35,7 +35,8 @@ class TransportSettings:
     """A connection with no transfer for this long is closed (the sender reconnects)."""
     transfer_base_s: float = 10.0
     min_rate: float = 128_000.0
-    """Bytes/s: a transfer must finish within transfer_base_s + announced bytes / min_rate."""
+    """Bytes/s: after transfer_base_s a transfer must have received at least min_rate bytes per
+    second so far (so it ends by transfer_base_s + size / min_rate, and a trickle is cut early)."""
     max_connections: int = 32
     max_connections_per_address: int = 4
     """A single host flooding connections cannot take every slot."""
@@ -130,6 +131,7 @@ class MapServer:
         self._lock = threading.Lock()
         self._accept_thread: threading.Thread | None = None
         self.refused_busy = 0
+        self.accepted = 0
         self.instance = int.from_bytes(os.urandom(8), "little")
         """Random per server: tells peers this daemon restarted (and lost what it had received)."""
 
@@ -191,6 +193,7 @@ class MapServer:
                     return
                 time.sleep(0.05)
                 continue
+            self.accepted += 1
             with self._lock:
                 per_address = self._per_address.get(addr[0], 0)
             if per_address >= self.settings.max_connections_per_address or \
@@ -268,6 +271,8 @@ class _Connection:
         t_start = 0.0
         while not stop.is_set():
             now = time.monotonic()
+            if phase == "transfer":  # keep up at least min_rate after the base time, all along
+                deadline = t_start + s.transfer_base_s + self.reasm.received_bytes / s.min_rate
             if now >= deadline:
                 if phase == "idle" and self.reasm.between_transfers:
                     log.info("closing idle connection from %s (vehicle %s)", self.address, self.vehicle_id)
@@ -289,6 +294,9 @@ class _Connection:
                 return
             was_in = self.reasm.in_transfer
             events = self.reasm.commit(n)
+            if phase == "idle" and not self.reasm.between_transfers:
+                phase = "frame"  # a control frame has begun: base transfer time, not the idle time
+                deadline = min(deadline, time.monotonic() + s.transfer_base_s)
             if self.reasm.in_transfer and not was_in:
                 if s.swarm_key is not None and self.hello is None:
                     raise Rejected("auth", "a swarm key is set and the peer sent no hello (thesis-format "
@@ -398,11 +406,12 @@ class PeerLink:
             raise MtpError("block_size", f"peer uses block size {bs}, this end uses {s.block_size}; "
                                          f"both ends must agree (setting sharing.block_size)")
         frame = head + self._recv_exact(bs - mtp.HEAD.size, s.handshake_timeout)
-        self.peer = mtp.parse_hello(frame)
-        if self.peer.keyed != (s.swarm_key is not None):
-            raise MtpError("auth", f"swarm key mismatch: peer key {'on' if self.peer.keyed else 'off'}, "
+        peer = mtp.parse_hello(frame)
+        if peer.keyed != (s.swarm_key is not None):
+            raise MtpError("auth", f"swarm key mismatch: peer key {'on' if peer.keyed else 'off'}, "
                                    f"ours {'on' if s.swarm_key else 'off'}")
-        return self.peer
+        self.peer = peer  # set only once the handshake succeeded
+        return peer
 
     def send_map(self, message) -> tuple[int, float]:
         """Send one message as an MTP transfer; return (ack status, seconds until the ack)."""

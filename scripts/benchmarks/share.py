@@ -25,17 +25,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from tests.sharing.realistic_maps import building_map  # noqa: E402
-
 from coopd.grid import OccupancyGrid  # noqa: E402
 from coopd.sharing import wire  # noqa: E402
 from coopd.sharing.service import SharingConfig, SharingService, wire_inspect, wire_verifier  # noqa: E402
 from coopd.sharing.transport import PeerLink, TransportSettings  # noqa: E402
+from tests.sharing.realistic_maps import building_map  # noqa: E402
 
 SIZES = {"6M": (250, 250, 100), "25M": (500, 500, 100), "110M": (1050, 1050, 100)}
 """Thesis Table 4 shapes: bookstore (6.25 M), hospital UAV 1 (25 M), racetrack UAV 1 (110.25 M)."""
 EXPLORED = {"6M": 0.25, "25M": 0.15, "110M": 0.06}
 ENCODINGS = ("default", "raw")
+"""Compressed (the wire default) and uncompressed; --encodings adds e.g. 'thesis' (the thesis codec)."""
 THESIS_ANCHOR = {"share_110M_compressed_s": 1.75, "share_110M_uncompressed_s": 200.0,
                  "source": "thesis §10.2, i7-4510U, C++, transfer only"}
 GOAL_110M_LOOPBACK_S = 0.5
@@ -48,13 +48,14 @@ def serve(host: str, port: int) -> None:
     """Receiver process: a SharingService that fully decodes every map before acknowledging it."""
     cfg = SharingConfig(vehicle_id=2, listen_host=host, port=port, transport=SETTINGS)
     verify_inner = wire_verifier(SETTINGS.max_cells, SETTINGS.max_bytes)
-    timings = []
+    out_lock = threading.Lock()
 
     def verify(message: bytes) -> None:
         t = time.perf_counter()
         verify_inner(message)
-        timings.append(time.perf_counter() - t)
-        print(json.dumps({"decode_s": timings[-1], "bytes": len(message)}), flush=True)
+        line = json.dumps({"decode_s": time.perf_counter() - t, "bytes": len(message)})
+        with out_lock:
+            print(line, flush=True)
 
     warm_up()
     svc = SharingService(cfg, inspect=wire_inspect, verify=verify).start()
@@ -67,7 +68,7 @@ def serve(host: str, port: int) -> None:
 def warm_up() -> None:
     """Compile the codec kernels (numba JIT) before anything is timed."""
     grid = OccupancyGrid(building_map((60, 60, 20), 0.5, 0), 0.1)
-    for enc in ENCODINGS:
+    for enc in wire.ENCODINGS:
         wire.decode_map(wire.encode_map(grid, wire.MapMeta(0, 1), enc))
 
 
@@ -133,14 +134,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run_loopback(sizes, repeat) -> list[dict]:
+def run_loopback(sizes, repeat, encodings) -> list[dict]:
     port = free_port()
     rx = Receiver([], "127.0.0.1", port)
     results = []
     try:
         version = 1
         for size in sizes:
-            for enc in ENCODINGS:
+            for enc in encodings:
                 r = send_runs("127.0.0.1", port, size, enc, repeat, version)
                 version += repeat
                 decodes = rx.decode_times()
@@ -153,7 +154,48 @@ def run_loopback(sizes, repeat) -> list[dict]:
     return results
 
 
-def run_shaped(sizes, rate_mbit: float) -> tuple[list[dict], str | None]:
+def _send_one(barrier, link, message, times, i) -> None:
+    barrier.wait()
+    times[i] = link.send_map(message)[1]
+
+
+def run_fan_in(counts, size: str = "25M") -> list[dict]:
+    """N senders at once into one receiver (thread per connection): wall time for all N maps."""
+    port = free_port()
+    rx = Receiver([], "127.0.0.1", port)
+    warm_up()
+    grid = make_grid(size)
+    results = []
+    version = 1
+    try:
+        for n in counts:
+            msgs = [wire.encode_map(grid, wire.MapMeta(100 + i, version, 0.0)) for i in range(n)]
+            version += 1
+            links = [PeerLink.connect("127.0.0.1", port, SETTINGS, 100 + i, source=f"127.0.3.{10 + i}")
+                     for i in range(n)]  # one address per drone, as in a swarm
+            times = [0.0] * n
+            barrier = threading.Barrier(n)
+            t0 = time.perf_counter()
+            threads = [threading.Thread(target=_send_one, args=(barrier, links[i], msgs[i], times, i))
+                       for i in range(n)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            wall = time.perf_counter() - t0
+            for link in links:
+                link.close()
+            rx.decode_times()
+            results.append({"senders": n, "size": size, "message_bytes": len(msgs[0]),
+                            "wall_s": round(wall, 4), "slowest_transfer_s": round(max(times), 4),
+                            "maps_per_s": round(n / wall, 1)})
+            print(f"fan-in {n} x {size}: {wall:.3f} s", file=sys.stderr)
+    finally:
+        rx.stop()
+    return results
+
+
+def run_shaped(sizes, rate_mbit: float, encodings) -> tuple[list[dict], str | None]:
     """One run per size and encoding over a veth between two namespaces, tbf on the sender side."""
     if os.geteuid() != 0 or shutil.which("ip") is None or shutil.which("tc") is None:
         return [], "needs root, ip and tc"
@@ -178,7 +220,7 @@ def run_shaped(sizes, rate_mbit: float) -> tuple[list[dict], str | None]:
         try:
             version = 1
             for size in sizes:
-                for enc in ENCODINGS:
+                for enc in encodings:
                     out = subprocess.run(
                         ["ip", "netns", "exec", a, sys.executable, __file__, "--send", "10.213.9.2", "7400",
                          size, enc, "1", str(version)],
@@ -208,6 +250,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-shaped", action="store_true")
     ap.add_argument("--rate-mbit", type=float, default=54.0)
+    ap.add_argument("--encodings", default=",".join(ENCODINGS), help="e.g. default,raw,thesis")
+    ap.add_argument("--fan-in", default="1,4,16", help="concurrent senders into one receiver ('' to skip)")
     ap.add_argument("--serve", nargs=2, metavar=("HOST", "PORT"))
     ap.add_argument("--send", nargs=6, metavar=("HOST", "PORT", "SIZE", "ENCODING", "REPEAT", "VERSION"))
     args = ap.parse_args()
@@ -222,15 +266,18 @@ def main() -> None:
     for s in sizes:
         if s not in SIZES:
             ap.error(f"unknown size {s}; known: {', '.join(SIZES)}")
-    loop = run_loopback(sizes, args.repeat)
-    shaped, why = ([], "disabled by --no-shaped") if args.no_shaped else run_shaped(sizes, args.rate_mbit)
-    big = [r for r in loop if r["size"] == "110M" and r["encoding"] != "raw"]
+    encodings = [e for e in args.encodings.split(",") if e]
+    loop = run_loopback(sizes, args.repeat, encodings)
+    fan_in = run_fan_in([int(n) for n in args.fan_in.split(",") if n])
+    shaped, why = (([], "disabled by --no-shaped") if args.no_shaped
+                   else run_shaped(sizes, args.rate_mbit, encodings))
+    big = [r for r in loop if r["size"] == "110M" and r["encoding"] == wire.DEFAULT_ENCODING]
     report = {
         "benchmark": "share", "host": platform.node(), "python": platform.python_version(),
         "cpus": os.cpu_count(), "block_size": SETTINGS.block_size,
         "what": "end_to_end_s = encode (compress) + MTP transfer + receiver inspect/decode (decompress) "
                 "until its ack; best of --repeat on loopback, one run shaped",
-        "loopback": loop, "shaped": shaped, "shaped_skipped": why,
+        "loopback": loop, "fan_in_loopback": fan_in, "shaped": shaped, "shaped_skipped": why,
         "thesis_anchor": THESIS_ANCHOR,
         "goal_110M_loopback_s": GOAL_110M_LOOPBACK_S,
         "goal_met": (big[0]["end_to_end_s"] <= GOAL_110M_LOOPBACK_S) if big else None,

@@ -25,24 +25,49 @@ def _grid(seed: int) -> OccupancyGrid:
 
 
 STATUS = {
-    "vehicle_id": 3, "pid": 4242, "state": "running", "uptime_s": 3725.0,
+    "vehicle_id": 3,
+    "pid": 4242,
+    "state": "running",
+    "uptime_s": 3725.0,
     "link": {"state": "ok", "age_s": 0.02},
     "pose": {"position_m": [1.2, -3.4, 2.0], "yaw_deg": 90.0, "age_s": 0.03},
     "map": {"shape": [20, 16, 8], "cells": 2560, "known": 1900, "resolution_m": 0.1, "version": 41},
     "frames": {"in": 1234, "dropped": 12, "rejected": 3},
-    "peers": [{"vehicle_id": 5, "address": "10.42.0.5:7400", "connected": True, "map_version": 7,
-               "map_bytes": 5120, "last_seen_s": 1.5}],
+    "peers": [
+        {
+            "vehicle_id": 5,
+            "address": "10.42.0.5:7400",
+            "connected": True,
+            "map_version": 7,
+            "map_bytes": 5120,
+            "last_seen_s": 1.5,
+        }
+    ],
     "merges": {"done": 10, "failed": 1, "deferred": 2},
-    "memory": {"budget_bytes": 512 << 20, "rss_bytes": 200 << 20, "reserved_bytes": 3 << 20,
-               "entries": {"local": 1 << 20, "global": 2 << 20}, "refused": 2},
-    "threads": [{"role": "mavlink", "tid": 11, "requested": -5, "applied": 0, "note": "EPERM"},
-                {"role": "merging", "tid": 12, "requested": 10, "applied": 10, "note": ""}],
+    "memory": {
+        "budget_bytes": 512 << 20,
+        "rss_bytes": 200 << 20,
+        "reserved_bytes": 3 << 20,
+        "entries": {"local": 1 << 20, "global": 2 << 20},
+        "refused": 2,
+    },
+    "threads": [
+        {"role": "mavlink", "tid": 11, "requested": -5, "applied": 0, "note": "EPERM"},
+        {"role": "merging", "tid": 12, "requested": 10, "applied": 10, "note": ""},
+    ],
     "control": {"served": 5, "bad_requests": 1, "oversize": 0, "timeouts": 0, "evicted": 0},
-    "checkpoint": {"saved": 4, "failed": 0, "set_aside": 1,
-                   "last_path": "/var/lib/coopd/local.0000000004.cmap"},
+    "checkpoint": {
+        "saved": 4,
+        "failed": 0,
+        "set_aside": 1,
+        "last_path": "/var/lib/coopd/local.0000000004.cmap",
+    },
 }
-MAPS = {"local": (_grid(1), MapMeta(3, 41, 100.0)), "global": (_grid(2), MapMeta(3, 9, 101.0)),
-        5: (_grid(3), MapMeta(5, 7, 99.0))}
+MAPS = {
+    "local": (_grid(1), MapMeta(3, 41, 100.0)),
+    "global": (_grid(2), MapMeta(3, 9, 101.0)),
+    5: (_grid(3), MapMeta(5, 7, 99.0)),
+}
 
 
 def _dump(args):
@@ -140,13 +165,24 @@ def test_dump_map_errors(daemon, tmp_path, capsys):
     assert "no map" in capsys.readouterr().err
     assert main(["dump-map", "somebody", "-o", str(tmp_path / "x.cmap"), "--socket", daemon]) == 1
     assert "vehicle id" in capsys.readouterr().err
-    assert main(["dump-map", "local", "-o", str(tmp_path / "x.cmap"), "--max-bytes", "100",
-                 "--socket", daemon]) == 1
+    assert (
+        main(["dump-map", "local", "-o", str(tmp_path / "x.cmap"), "--max-bytes", "100", "--socket", daemon])
+        == 1
+    )
     assert "limit of 100" in capsys.readouterr().err
-    assert main(["dump-map", "local", "-o", str(tmp_path / "x.cmap"), "--max-cells", "100",
-                 "--socket", daemon]) == 1
+    assert (
+        main(["dump-map", "local", "-o", str(tmp_path / "x.cmap"), "--max-cells", "100", "--socket", daemon])
+        == 1
+    )
     assert "exceeds the limit of 100" in capsys.readouterr().err
     assert not (tmp_path / "x.cmap").exists()
+
+
+def test_dump_limits_default_to_the_wire_limits():
+    from coopd.cli.daemon_commands import MAX_DUMP_BYTES, MAX_DUMP_CELLS
+    from coopd.sharing.wire import DecodeLimits
+
+    assert (MAX_DUMP_BYTES, MAX_DUMP_CELLS) == (DecodeLimits().max_bytes, DecodeLimits().max_cells)
 
 
 def test_daemon_not_running(tmp_path, capsys):
@@ -154,6 +190,22 @@ def test_daemon_not_running(tmp_path, capsys):
     assert main(["status", "--socket", str(path)]) == 1
     err = capsys.readouterr().err
     assert "coopd is not running" in err and "systemctl start coopd" in err
+
+
+def test_not_running_message_from_the_program(tmp_path):
+    """Run as `python -m coopd.cli.coopctl`: one line on stderr, exit code 1, no traceback."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    r = subprocess.run(
+        [sys.executable, "-m", "coopd.cli.coopctl", "status", "--socket", str(tmp_path / "x.sock")],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        timeout=120,
+    )
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert r.stderr.startswith("coopctl: error: coopd is not running: no control socket")
 
 
 def test_stale_socket_reports_not_running(capsys):

@@ -91,6 +91,7 @@ BAD = [
     ("[daemon]\nmemory_mb = 8", "daemon.memory_mb", "outside"),
     ("[daemon]\nlog_level = 'verbose'", "daemon.log_level", "one of"),
     ("[daemon]\nstate_dir = 'var/lib'", "daemon.state_dir", "absolute"),
+    ("[daemon]\ncontrol_socket = '/run/" + "x" * 100 + "'", "daemon.control_socket", "longer than"),
     ("daemon = 3", "daemon", "table"),
 ]
 

@@ -213,6 +213,27 @@ def test_slowloris_and_many_connections_do_not_lock_out_a_good_client(server):
             s.close()
 
 
+def test_flood_beyond_the_backlog_still_serves_a_good_client(server):
+    """300 stuck connections (more than the listen backlog): the client waits for room instead of
+    failing with EAGAIN, and gets its answer once the stuck ones are evicted (4 slots here)."""
+    stuck = []
+    try:
+        for _ in range(300):
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.setblocking(False)
+            try:
+                s.connect(server.path)
+                s.send(b"\x00")
+            except BlockingIOError:
+                pass
+            stuck.append(s)
+        assert ping_time(server.path) < 5.0  # ~1.3 s: 260 evictions, 4 slots, 20 ms each
+        assert ping_time(server.path) < 0.5
+    finally:
+        for s in stuck:
+            s.close()
+
+
 def test_concurrent_good_clients(server):
     results, errors = [], []
 

@@ -162,6 +162,10 @@ class Node:
     def status(self) -> dict:
         return json.loads(self._cmd("status"))
 
+    def rss_kb(self) -> dict:
+        """{'VmHWM': peak kB, 'VmRSS': current kB} of the node process."""
+        return json.loads(self._cmd("rss"))
+
     def received(self) -> dict:
         return {int(k): v for k, v in self.status()["received"].items()}
 

@@ -189,3 +189,13 @@ def test_fuzz_mutated_streams(cells, data):
     out = _expand_or_error(stream, cells.size)
     if out is not None and np.array_equal(stream, compress(cells)):
         assert np.array_equal(out, cells)
+
+
+@pytest.mark.parametrize("start", [1, 3, 7])
+def test_unaligned_input_views(start):
+    big = np.full(4003, -1, np.int8)
+    big[1000:1100] = 0
+    big[2000:2003] = 100
+    cells = big[start:]
+    assert np.array_equal(decompress(compress(cells), cells.size), cells)
+    assert compress(cells).tolist() == compress(cells.copy()).tolist()
