@@ -1,0 +1,1 @@
+"""Map merging (thesis chapter 8): features, correspondences, validated transforms, fusion."""
