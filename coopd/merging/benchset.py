@@ -2,9 +2,10 @@
 
 Each partial map is what a drone would build: from viewpoints inside an explored sub-box of the
 world, rays go out in every direction; the cells they cross become free, the surface cell they hit
-becomes occupied, everything behind stays unknown. Rays are cast in the map's *own* frame (random
-yaw, translation up to 10 m, roll/pitch <= 3 degrees), so no resampling artefacts are added and the
-ground-truth transform between two maps is exact.
+becomes occupied, everything behind stays unknown. Rays are cast in the map's *own* frame: the
+drone's start pose near the centre of its box, with a random yaw and roll/pitch <= 3 degrees, so two
+maps differ by any yaw and a translation of up to about 10 m (the distance between the boxes); no
+resampling artefacts are added and the ground-truth transform between two maps is exact.
 """
 
 from dataclasses import dataclass
@@ -142,13 +143,13 @@ def _cast(solid, wres, origins_m, dirs, rot, trans, max_range, hits, misses, off
                     last = flat
 
 
-def random_frame(rng, max_translation: float = 10.0, max_tilt_deg: float = 3.0) -> np.ndarray:
-    """world_from_map of a drone's start frame: any yaw, small roll/pitch, translation <= max."""
+def random_frame(rng, start_xy, max_tilt_deg: float = 3.0, height_m: float = 1.5) -> np.ndarray:
+    """world_from_map of a drone's start frame (thesis-notes §1: its pose at the first odometry
+    sample): at the start point, within 1 m of start_xy, any yaw, roll/pitch up to max_tilt_deg."""
     yaw = rng.uniform(0, 2 * np.pi)
     roll, pitch = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
-    d = rng.normal(size=3)
-    t = d / np.linalg.norm(d) * rng.uniform(0, max_translation)
-    return rigid(euler_to_matrix(roll, pitch, yaw), t)
+    start = np.array([*(np.asarray(start_xy) + rng.uniform(-1.0, 1.0, 2)), height_m])
+    return rigid(euler_to_matrix(roll, pitch, yaw), start)
 
 
 def free_viewpoints(world: World, box_m, count: int, rng) -> np.ndarray:
@@ -231,16 +232,29 @@ def make_pair(world: World, seed: int, shift_m: float, box_size_m: float = 10.0,
         if np.all(cb >= box_size_m / 2 + 0.5) and np.all(cb <= ext - box_size_m / 2 - 0.5):
             break
     half = box_size_m / 2
-    ma = partial_map(world, random_frame(rng), (ca - half, ca + half), rng, **map_kw)
-    mb = partial_map(world, random_frame(rng), (cb - half, cb + half), rng, **map_kw)
+    ma = partial_map(world, random_frame(rng, ca), (ca - half, ca + half), rng, **map_kw)
+    mb = partial_map(world, random_frame(rng, cb), (cb - half, cb + half), rng, **map_kw)
     return MergePair(ma.grid, mb.grid, invert(ma.world_from_map) @ mb.world_from_map,
                      known_overlap(ma, mb), seed)
 
 
-def benchmark_pairs(count: int = 40, seed: int = 7, world_seed: int = 0, non_overlapping: int = 8,
+def benchmark_pairs(count: int = 40, seed: int = 7, world_seed: int = 0, non_overlapping: int = 10,
                     **map_kw) -> list[MergePair]:
-    """The merge benchmark: `count` overlapping pairs over a spread of shifts plus far-apart pairs."""
+    """The merge benchmark: `count` overlapping pairs (box shifts 1.5-8 m: overlap about 0.15-0.65)
+    plus `non_overlapping` pairs of small boxes 16 m apart, which must be rejected."""
     world = make_world(world_seed)
     rng = np.random.default_rng(seed)
-    shifts = np.concatenate([rng.uniform(1.0, 8.0, count), np.full(non_overlapping, 14.5)])
-    return [make_pair(world, seed * 1000 + i, float(s), **map_kw) for i, s in enumerate(shifts)]
+    shifts = rng.uniform(1.5, 8.0, count)
+    pairs = [make_pair(world, seed * 1000 + i, float(s), **map_kw) for i, s in enumerate(shifts)]
+    pairs += [make_pair(world, seed * 1000 + count + i, 16.0, box_size_m=6.0, **map_kw)
+              for i in range(non_overlapping)]
+    return pairs
+
+
+def make_chain(world: World, seed: int, centres_xy, box_size_m: float = 8.0, **map_kw) -> list[PartialMap]:
+    """Partial maps of boxes centred at the given points, each in its own random frame (multi-map)."""
+    rng = np.random.default_rng(seed)
+    half = box_size_m / 2
+    boxes = [(np.asarray(c) - half, np.asarray(c) + half) for c in centres_xy]
+    return [partial_map(world, random_frame(rng, c), box, rng, **map_kw)
+            for c, box in zip(centres_xy, boxes, strict=True)]

@@ -29,12 +29,15 @@ class MergeResult:
     conflicts: int
     runner_up_score: float
     reason: str
+    overlap: float = 0.0
+    """Agreeing vertical-structure samples over all samples of both maps (0..1)."""
     timings: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {"accepted": self.accepted, "transform": [float(v) for v in self.transform.reshape(-1)],
                 "inliers": self.inliers, "score": round(self.score, 4), "agreement": self.agreement,
-                "conflicts": self.conflicts, "runner_up_score": round(self.runner_up_score, 4),
+                "conflicts": self.conflicts, "overlap": round(self.overlap, 4),
+                "runner_up_score": round(self.runner_up_score, 4),
                 "reason": self.reason, "seconds": round(sum(self.timings.values()), 4),
                 "timings": {k: round(v, 4) for k, v in self.timings.items()}}
 
@@ -86,7 +89,7 @@ def _feature_candidates(a: PreparedMap, b: PreparedMap, params: MergeParams, tm:
     return [Candidate(h.transform, h.inlier_count, params.ransac_model) for h in hyps]
 
 
-def _distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 3.0, shift_m: float = 0.5) -> bool:
+def _distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
     return (rotation_angle_deg(t1[:3, :3].T @ t2[:3, :3]) > angle_deg
             or float(np.linalg.norm(t1[:3, 3] - t2[:3, 3])) > shift_m)
 
@@ -110,31 +113,35 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     scored: list[tuple[float, Agreement, Candidate]] = []
     for c in cands:
         t, inl = c.transform, c.inliers
-        if params.refine and a.tree is not None and len(b.summary.sample_m):
-            src = b.summary.sample_m[:: max(1, len(b.summary.sample_m) // params.refine_max_points)]
+        if params.refine and a.tree is not None and len(b.summary.occupied_m):
+            src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
             t, frac = icp(a.tree, a.summary.occupied_m, src, t, params.refine_iterations, a.grid.resolution)
             inl = int(round(frac * len(src))) if c.source == "search" else inl
         ag = agreement(a.summary, b.summary, t)
         scored.append((ag.support(), ag, Candidate(t, inl, c.source)))
     tm["validate"] = time.perf_counter() - t0
     if not scored:
-        return MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0, "no hypothesis (no correspondences)", tm)
+        return MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0, "no hypothesis (no correspondences)",
+                           timings=tm)
     scored.sort(key=lambda x: -x[0])
     _, best_ag, best = scored[0]
     runner = next((s for s in scored[1:] if _distinct(s[2].transform, best.transform)), None)
     runner_score = runner[1].score if runner else 0.0
+    overlap = best_ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
     reason = "accepted"
     if best.inliers < params.min_inliers:
         reason = f"{best.inliers} inliers < {params.min_inliers}"
     elif best_ag.agree < params.min_agreement:
         reason = f"overlap too small: {best_ag.agree} agreeing cells < {params.min_agreement}"
+    elif overlap < params.min_overlap:
+        reason = f"overlap too small: {overlap:.3f} of the maps' structure agrees < {params.min_overlap}"
     elif best_ag.score < params.min_score:
         reason = f"score {best_ag.score:.3f} < {params.min_score}"
     elif runner is not None and runner[0] >= (1.0 - params.min_margin) * scored[0][0]:
         reason = f"ambiguous: a distinct hypothesis scores {runner[1].score:.3f} with support " \
                  f"{runner[0]:.0f} vs {scored[0][0]:.0f}"
     return MergeResult(reason == "accepted", best.transform, best.inliers, best_ag.score, best_ag.agree,
-                       best_ag.conflicts, runner_score, reason, tm)
+                       best_ag.conflicts, runner_score, reason, overlap, tm)
 
 
 def merge_pair(a: OccupancyGrid, b: OccupancyGrid, params: MergeParams | None = None) -> MergeResult:

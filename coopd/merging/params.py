@@ -62,7 +62,11 @@ class MergeParams:
     search_cell_m: float = 0.3
     search_yaw_step_deg: float = 2.0
     search_wall_cells: int = 3
-    search_free_penalty: float = 1.0
+    search_free_penalty: float = 2.0
+    search_free_cells: int = 5
+    """A column counts as seen free with no occupied and at least this many free cells in the slab."""
+    search_wall_weight_cap: int = 1
+    """Wall columns weigh min(occupied cells, cap): 1 makes the wall image binary."""
     search_slab_margin_m: float = 0.4
     """The slab searched leaves out this much above the floor and below the ceiling."""
     search_peaks_per_yaw: int = 2
@@ -73,8 +77,8 @@ class MergeParams:
     gravity_aligned: bool = False
     """Estimate yaw + translation only (drones share gravity through their IMUs)."""
     refine: bool = False
-    refine_iterations: int = 16
-    refine_max_points: int = 5000
+    refine_iterations: int = 14
+    refine_max_points: int = 4000
     refine_candidates: int = 4
     """Candidates (best by coarse agreement) that are refined and validated."""
     # --- validation (coopd; the thesis leaves it as future work)
@@ -84,6 +88,9 @@ class MergeParams:
     """Agreement of overlapping known cells: agree / (agree + occupied-vs-free conflicts)."""
     min_agreement: int = 600
     """Occupied cells of either map that land on the other's occupied surface."""
+    min_overlap: float = 0.2
+    """Agreeing share of both maps' vertical-structure samples: a transform that only touches the
+    other map at its border agrees everywhere it overlaps, but overlaps little."""
     min_margin: float = 0.10
     """Required lead of the best hypothesis' score over a distinct runner-up."""
     # --- multi-map (§8, Figure 35)

@@ -1,8 +1,9 @@
 """Validation of a candidate transform against both full-resolution grids (thesis §8.8 future work).
 
-Occupied cells of each map are carried into the other. Landing on (or next to) an occupied cell is an
-agreement; landing on a free cell with no occupied neighbour is a conflict (a wall where the other map
-saw through). Unknown says nothing. score = agree / (agree + conflicts), counted both ways.
+Occupied cells on vertical structures of each map are carried into the other. Landing on (or next
+to) an occupied cell is an agreement; landing on a free cell with no occupied neighbour is a conflict
+(a wall where the other map saw through). Unknown says nothing.
+score = agree / (agree + conflicts), counted both ways.
 """
 
 from dataclasses import dataclass
@@ -27,7 +28,7 @@ class MapSummary:
     occupied_m: np.ndarray
     """All occupied cell centres (metres, map frame)."""
     sample_m: np.ndarray
-    """At most validation_max_points of them, spread evenly."""
+    """At most validation_max_points of the occupied cells on vertical structures, spread evenly."""
 
 
 @nb.njit(**_JIT)
@@ -52,12 +53,24 @@ def classify(cells, threshold):
     return out
 
 
+def vertical_structure(occ: np.ndarray) -> np.ndarray:
+    """Occupied cells with an occupied cell straight above or below: walls and furniture sides.
+
+    Floors and ceilings agree under any horizontal shift or yaw, so counting them would let a wrong
+    transform that merely lays floor on floor look good; validation counts vertical structure only."""
+    v = np.zeros_like(occ)
+    v[:, :, 1:] |= occ[:, :, 1:] & occ[:, :, :-1]
+    v[:, :, :-1] |= occ[:, :, :-1] & occ[:, :, 1:]
+    return v
+
+
 def summarise(grid: OccupancyGrid, threshold: int, max_points: int) -> MapSummary:
     """Classes and occupied points of a grid, computed once per map."""
-    occ = np.argwhere(grid.cells >= threshold)
-    pts = (occ + grid.offset) * grid.resolution
-    step = max(1, len(pts) // max(1, max_points))
-    return MapSummary(classify(grid.cells, threshold), grid.offset, grid.resolution, pts, pts[::step].copy())
+    occ_mask = grid.cells >= threshold
+    pts = (np.argwhere(occ_mask) + grid.offset) * grid.resolution
+    vert = (np.argwhere(vertical_structure(occ_mask)) + grid.offset) * grid.resolution
+    step = max(1, len(vert) // max(1, max_points))
+    return MapSummary(classify(grid.cells, threshold), grid.offset, grid.resolution, pts, vert[::step].copy())
 
 
 @nb.njit(**_JIT)

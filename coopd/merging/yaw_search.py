@@ -10,12 +10,15 @@ alignment from 90/180-degree flips and shifts along repeated walls.
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from scipy import fft as sfft
 
 from ..geometry import rigid, rotation_z
 from ..grid import OccupancyGrid
 from .params import MergeParams
+
+_JIT = {"nogil": True, "cache": True}
 
 
 @dataclass(frozen=True)
@@ -58,36 +61,49 @@ def top_view(grid: OccupancyGrid, z_lo: float, z_hi: float, params: MergeParams)
     occ = (slab >= params.occupied_threshold).sum(axis=2)
     free = ((slab >= 0) & (slab < params.occupied_threshold)).sum(axis=2)
     ij = np.argwhere(occ >= params.search_wall_cells)
-    fj = np.argwhere((occ == 0) & (free >= 0.8 * slab.shape[2]))
+    fj = np.argwhere((occ == 0) & (free >= params.search_free_cells))
     off = grid.offset[:2]
-    return TopView((ij + off) * res, occ[ij[:, 0], ij[:, 1]].astype(np.float32), (fj + off) * res)
+    weight = np.minimum(occ[ij[:, 0], ij[:, 1]], params.search_wall_weight_cap).astype(np.float32)
+    return TopView((ij + off) * res, weight, (fj + off) * res)
 
 
-def _raster(points: np.ndarray, origin: np.ndarray, cell: float, n: tuple, weights=None) -> np.ndarray:
-    """Pixels holding any point (1) or, with weights, the largest weight among their points."""
-    img = np.zeros(n, dtype=np.float32)
-    if len(points) == 0:
-        return img
-    ij = np.floor((points - origin) / cell).astype(np.int64)
-    ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < n[0]) & (ij[:, 1] < n[1])
-    if weights is None:
-        img[ij[ok, 0], ij[ok, 1]] = 1.0
-    else:
-        np.maximum.at(img, (ij[ok, 0], ij[ok, 1]), weights[ok])
-    return img
+@nb.njit(**_JIT)
+def _raster_into(img, points, weights, c, s, origin, cell):
+    """img[pixel] = max weight of the points, turned by the yaw (cos c, sin s), falling in it."""
+    nx, ny = img.shape
+    for i in range(points.shape[0]):
+        x = c * points[i, 0] - s * points[i, 1]
+        y = s * points[i, 0] + c * points[i, 1]
+        ix = int(np.floor((x - origin[0]) / cell))
+        iy = int(np.floor((y - origin[1]) / cell))
+        if 0 <= ix < nx and 0 <= iy < ny and weights[i] > img[ix, iy]:
+            img[ix, iy] = weights[i]
 
 
-def _free_raster(free: np.ndarray, walls: np.ndarray, origin: np.ndarray, cell: float,
-                 n: tuple) -> np.ndarray:
-    """Free pixels that are at least one pixel away from any wall pixel (a wall's own pixel holds free
-    columns in front of it, which must not count against a wall laid there)."""
-    f = _raster(free, origin, cell, n)
-    w = _raster(walls, origin, cell, n)  # binary wall mask
-    grown = w.copy()
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            grown = np.maximum(grown, np.roll(np.roll(w, dx, 0), dy, 1))
-    return f * (1.0 - grown)
+@nb.njit(**_JIT)
+def _clear_near_walls(free, walls):
+    """Drop free pixels within one pixel of a wall pixel (a wall's own pixel holds the free columns
+    in front of it, which must not count against a wall laid there)."""
+    nx, ny = free.shape
+    for x in range(nx):
+        for y in range(ny):
+            if free[x, y] == 0:
+                continue
+            for a in range(max(0, x - 1), min(nx, x + 2)):
+                for b in range(max(0, y - 1), min(ny, y + 2)):
+                    if walls[a, b] > 0:
+                        free[x, y] = 0
+
+
+def _images(view: TopView, yaw: float, origin: np.ndarray, cell: float, n: tuple):
+    """(wall image, free image) of a top view turned by yaw, pixel [0, 0] at origin."""
+    c, s = float(np.cos(yaw)), float(np.sin(yaw))
+    walls = np.zeros(n, dtype=np.float32)
+    free = np.zeros(n, dtype=np.float32)
+    _raster_into(walls, view.walls, view.wall_weight, c, s, origin, cell)
+    _raster_into(free, view.free, np.ones(len(view.free), dtype=np.float32), c, s, origin, cell)
+    _clear_near_walls(free, walls)
+    return walls, free
 
 
 def vertical_offset(ha: np.ndarray, za: float, hb: np.ndarray, zb: float, resolution: float) -> float:
@@ -119,20 +135,19 @@ def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid,
     a_org = a_pts.min(axis=0)
     a_ext = np.ceil((a_pts.max(axis=0) - a_org) / cell).astype(int) + 1
     centre = b.walls.mean(axis=0)
-    b_rad = float(np.max(np.linalg.norm(np.concatenate([b.walls, b.free]) - centre, axis=1)))
+    b = TopView(b.walls - centre, b.wall_weight, b.free - centre)
+    b_rad = float(np.max(np.linalg.norm(np.concatenate([b.walls, b.free]), axis=1)))
     b_ext = int(np.ceil(2 * b_rad / cell)) + 2
     n = tuple(sfft.next_fast_len(int(e + b_ext), real=True) for e in a_ext)
-    wa = sfft.rfft2(_raster(a.walls, a_org, cell, n, a.wall_weight))
-    fa = sfft.rfft2(_free_raster(a.free, a.walls, a_org, cell, n))
+    wa_img, fa_img = _images(a, 0.0, a_org, cell, n)
+    wa, fa = sfft.rfft2(wa_img), sfft.rfft2(fa_img)
     lam = params.search_free_penalty
+    b_org = np.array([-b_rad, -b_rad])
     found = []
     for yaw in np.radians(np.arange(0.0, 360.0, params.search_yaw_step_deg)):
         r = rotation_z(yaw)[:2, :2]
-        bw = (b.walls - centre) @ r.T
-        bf = (b.free - centre) @ r.T
-        b_org = np.array([-b_rad, -b_rad])
-        wb = np.conj(sfft.rfft2(_raster(bw, b_org, cell, n, b.wall_weight)))
-        fb = np.conj(sfft.rfft2(_free_raster(bf, bw, b_org, cell, n)))
+        wb_img, fb_img = _images(b, yaw, b_org, cell, n)
+        wb, fb = np.conj(sfft.rfft2(wb_img)), np.conj(sfft.rfft2(fb_img))
         score = sfft.irfft2(wa * wb - lam * (wa * fb + fa * wb), s=n)
         for _ in range(params.search_peaks_per_yaw):
             k = int(np.argmax(score))
