@@ -240,11 +240,11 @@ def make_pair(world: World, seed: int, shift_m: float, box_size_m: float = 10.0,
 
 def benchmark_pairs(count: int = 40, seed: int = 7, world_seed: int = 0, non_overlapping: int = 10,
                     **map_kw) -> list[MergePair]:
-    """The merge benchmark: `count` overlapping pairs (box shifts 1.5-8 m: overlap about 0.15-0.65)
+    """The merge benchmark: `count` overlapping pairs (box shifts 3-8.5 m: overlap about 0.15-0.65)
     plus `non_overlapping` pairs of small boxes 16 m apart, which must be rejected."""
     world = make_world(world_seed)
     rng = np.random.default_rng(seed)
-    shifts = rng.uniform(1.5, 8.0, count)
+    shifts = rng.uniform(3.0, 8.5, count)
     pairs = [make_pair(world, seed * 1000 + i, float(s), **map_kw) for i, s in enumerate(shifts)]
     pairs += [make_pair(world, seed * 1000 + count + i, 16.0, box_size_m=6.0, **map_kw)
               for i in range(non_overlapping)]
