@@ -11,6 +11,7 @@ from ..grid import OccupancyGrid
 from . import yaw_search
 from .features import MapFeatures, extract
 from .matching import match
+from .mtm import euler_eq33
 from .params import MergeParams, coopd_params
 from .ransac import filter_correspondences
 from .refine import icp
@@ -34,7 +35,10 @@ class MergeResult:
     timings: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        return {"accepted": self.accepted, "transform": [float(v) for v in self.transform.reshape(-1)],
+        """JSON-ready summary; euler_deg is (roll, pitch, yaw) by eq. 33."""
+        roll, pitch, yaw = (float(np.degrees(v)) for v in euler_eq33(self.transform)[3:])
+        return {"accepted": self.accepted, "transform": [[float(v) for v in row] for row in self.transform],
+                "euler_deg": [round(roll, 4), round(pitch, 4), round(yaw, 4)],
                 "inliers": self.inliers, "score": round(self.score, 4), "agreement": self.agreement,
                 "conflicts": self.conflicts, "overlap": round(self.overlap, 4),
                 "runner_up_score": round(self.runner_up_score, 4),

@@ -32,3 +32,13 @@ def test_thesis_variant_runs_every_stage_and_validation_guards_it(near_pair):
     if r.accepted:  # validation must never let a wrong transform through
         rot, trans = _errors(r.transform, near_pair.a_from_b)
         assert rot < 2.0 and trans < 0.3
+
+
+def test_merge_pair_refuses_empty_and_featureless_maps_with_a_reason():
+    from coopd.grid import OccupancyGrid
+
+    empty = OccupancyGrid.empty((10, 10, 10))
+    free = OccupancyGrid(np.full((30, 30, 10), 5, dtype=np.int8), 0.1, (-15, -15, 0))
+    for a, b in [(empty, empty), (free, free), (empty, free)]:
+        r = merge_pair(a, b, coopd_params())
+        assert not r.accepted and r.reason
