@@ -1,0 +1,157 @@
+"""Pairwise merging: hypotheses (global search and/or features), refinement, validation, decision."""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry import rotation_angle_deg
+from ..grid import OccupancyGrid
+from . import yaw_search
+from .features import MapFeatures, extract
+from .matching import match
+from .mtm import euler_eq33
+from .params import MergeParams, coopd_params
+from .ransac import filter_correspondences
+from .refine import icp
+from .validation import Agreement, MapSummary, agreement, summarise
+
+
+@dataclass(frozen=True)
+class MergeResult:
+    """Outcome of merging b into a: transform maps points of b's frame into a's frame (metres)."""
+
+    accepted: bool
+    transform: np.ndarray
+    inliers: int
+    score: float
+    agreement: int
+    conflicts: int
+    runner_up_score: float
+    reason: str
+    overlap: float = 0.0
+    """Agreeing vertical-structure samples over all samples of both maps (0..1)."""
+    timings: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """JSON-ready summary; euler_deg is (roll, pitch, yaw) by eq. 33."""
+        roll, pitch, yaw = (float(np.degrees(v)) for v in euler_eq33(self.transform)[3:])
+        return {"accepted": self.accepted, "transform": [[float(v) for v in row] for row in self.transform],
+                "euler_deg": [round(roll, 4), round(pitch, 4), round(yaw, 4)],
+                "inliers": self.inliers, "score": round(self.score, 4), "agreement": self.agreement,
+                "conflicts": self.conflicts, "overlap": round(self.overlap, 4),
+                "runner_up_score": round(self.runner_up_score, 4),
+                "reason": self.reason, "seconds": round(sum(self.timings.values()), 4),
+                "timings": {k: round(v, 4) for k, v in self.timings.items()}}
+
+
+@dataclass(frozen=True)
+class Candidate:
+    transform: np.ndarray
+    inliers: int
+    source: str
+
+
+@dataclass
+class PreparedMap:
+    """Per-map work reused across merges (the global map is prepared again only when it changes)."""
+
+    grid: OccupancyGrid
+    summary: MapSummary
+    tree: cKDTree | None = None
+    features: MapFeatures | None = None
+
+
+def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = None) -> PreparedMap:
+    """Summary for validation, a k-d tree for refinement and features when the variant uses them."""
+    tm = timings if timings is not None else {}
+    t0 = time.perf_counter()
+    summary = summarise(grid, params.occupied_threshold, params.validation_max_points)
+    tree = cKDTree(summary.occupied_m) if params.refine and len(summary.occupied_m) else None
+    tm["summarise"] = tm.get("summarise", 0.0) + time.perf_counter() - t0
+    feats = None
+    if params.hypotheses > 0:
+        feats = extract(grid, params)
+        for k, v in feats.timings.items():
+            tm[k] = tm.get(k, 0.0) + v
+    return PreparedMap(grid, summary, tree, feats)
+
+
+def _feature_candidates(a: PreparedMap, b: PreparedMap, params: MergeParams, tm: dict) -> list[Candidate]:
+    """§8.6-8.8: match descriptors, filter by RANSAC, Kabsch on the inliers."""
+    fa, fb = a.features, b.features
+    if fa is None or fb is None:
+        return []
+    t0 = time.perf_counter()
+    ia, ib, _ = match(fa.descriptors, fb.descriptors, params)
+    tm["match"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    hyps = filter_correspondences(fb.points_m[ib], fa.points_m[ia], params.ransac_tolerance_cells * fa.cell_m,
+                                  params)
+    tm["ransac"] = time.perf_counter() - t0
+    return [Candidate(h.transform, h.inlier_count, params.ransac_model) for h in hyps]
+
+
+def _distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
+    return (rotation_angle_deg(t1[:3, :3].T @ t2[:3, :3]) > angle_deg
+            or float(np.linalg.norm(t1[:3, 3] - t2[:3, 3])) > shift_m)
+
+
+def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
+                   tm: dict | None = None) -> MergeResult:
+    """merge_pair on prepared maps."""
+    tm = {} if tm is None else tm
+    cands: list[Candidate] = []
+    if params.search:
+        t0 = time.perf_counter()
+        found = yaw_search.search(a.grid, b.grid, params)[: params.search_candidates]
+        cands += [Candidate(t, 0, "search") for _, t in found]
+        tm["search"] = time.perf_counter() - t0
+    if params.hypotheses > 0:
+        cands += _feature_candidates(a, b, params, tm)
+    t0 = time.perf_counter()
+    if params.refine and len(cands) > params.refine_candidates:
+        coarse = [agreement(a.summary, b.summary, c.transform).support() for c in cands]
+        cands = [cands[i] for i in np.argsort(coarse)[::-1][: params.refine_candidates]]
+    scored: list[tuple[float, Agreement, Candidate]] = []
+    for c in cands:
+        t, inl = c.transform, c.inliers
+        if params.refine and a.tree is not None and len(b.summary.occupied_m):
+            src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
+            t, frac = icp(a.tree, a.summary.occupied_m, src, t, params.refine_iterations, a.grid.resolution)
+            inl = int(round(frac * len(src))) if c.source == "search" else inl
+        ag = agreement(a.summary, b.summary, t)
+        scored.append((ag.support(), ag, Candidate(t, inl, c.source)))
+    tm["validate"] = time.perf_counter() - t0
+    if not scored:
+        return MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0, "no hypothesis (no correspondences)",
+                           timings=tm)
+    scored.sort(key=lambda x: -x[0])
+    _, best_ag, best = scored[0]
+    runner = next((s for s in scored[1:] if _distinct(s[2].transform, best.transform)), None)
+    runner_score = runner[1].score if runner else 0.0
+    overlap = best_ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
+    reason = "accepted"
+    if best.inliers < params.min_inliers:
+        reason = f"{best.inliers} inliers < {params.min_inliers}"
+    elif best_ag.agree < params.min_agreement:
+        reason = f"overlap too small: {best_ag.agree} agreeing cells < {params.min_agreement}"
+    elif overlap < params.min_overlap:
+        reason = f"overlap too small: {overlap:.3f} of the maps' structure agrees < {params.min_overlap}"
+    elif best_ag.score < params.min_score:
+        reason = f"score {best_ag.score:.3f} < {params.min_score}"
+    elif runner is not None and runner[0] >= (1.0 - params.min_margin) * scored[0][0]:
+        reason = f"ambiguous: a distinct hypothesis scores {runner[1].score:.3f} with support " \
+                 f"{runner[0]:.0f} vs {scored[0][0]:.0f}"
+    return MergeResult(reason == "accepted", best.transform, best.inliers, best_ag.score, best_ag.agree,
+                       best_ag.conflicts, runner_score, reason, overlap, tm)
+
+
+def merge_pair(a: OccupancyGrid, b: OccupancyGrid, params: MergeParams | None = None) -> MergeResult:
+    """Find, validate and report the transform carrying b's frame into a's (no initial guess)."""
+    params = params or coopd_params()
+    tm: dict = {}
+    pa = prepare(a, params, tm)
+    pb = prepare(b, params, tm)
+    return merge_prepared(pa, pb, params, tm)

@@ -1,0 +1,128 @@
+"""Every merging parameter in one frozen dataclass; `thesis_params()` reproduces chapter 8's defaults."""
+
+from dataclasses import dataclass, replace
+
+
+@dataclass(frozen=True)
+class MergeParams:
+    """Parameters of the whole pipeline. Distances in metres unless the name says cells."""
+
+    # --- preprocessing (§8.1)
+    dilate_radius: int = 1
+    dilate_iterations: int = 1
+    erode_radius: int = 1
+    erode_iterations: int = 1
+    gaussian_radius: int = 3
+    gaussian_sigma: float = 1.0
+    gaussian_iterations: int = 1
+    downsample_radius: int = 1
+    """DS_r: blocks of 2*DS_r cells per axis are averaged (eq. 34's factor)."""
+    occupied_threshold: int = 50
+    # --- FAST 3D (§8.2)
+    fast_radius: int = 3
+    fast_continuity: int = 9
+    fast_threshold: float = 80.0
+    """On intensities 0..255 (occupancy * 2.55), as for images."""
+    fast_both_polarities: bool = True
+    """Also accept cells darker than their ring (convex corners); the thesis tests brighter only."""
+    # --- keypoint filter (§8.3)
+    filter_score_radius: int = 1
+    filter_adjacent_radius: float = 1.0
+    max_keypoints: int = 1500
+    """Strongest keypoints kept per map after suppression (bounds matching and memory)."""
+    # --- orientation (§8.4)
+    orientation_mode: str = "global"
+    """'global' (potential field over the whole map) or 'local' (a cube of orientation_radius)."""
+    orientation_radius: int = 4
+    gauss_seidel_iterations: int = 20
+    # --- steered BRIEF 3D (§8.5)
+    descriptor_tests: int = 256
+    descriptor_window: int = 31
+    descriptor_seed: int = 42
+    descriptor_neighbourhood: int = 0
+    # --- matching (§8.6)
+    match_max_distance: int = 20
+    """CC_d: the thesis accepts pairs with Hamming distance <= 20."""
+    match_best_k: int = 0
+    """0: every pair within CC_d (thesis). k > 0: each keypoint of b keeps its k nearest in a."""
+    match_chunk: int = 512
+    # --- correspondence filter (§8.7)
+    ransac_model: str = "homography"
+    """'homography' (thesis, 5 points), 'rigid' (3-point Kabsch) or 'yaw' (2-point, gravity-aligned)."""
+    ransac_iterations: int = 1000
+    ransac_tolerance_cells: float = 3.0
+    """t, in downsampled cells."""
+    ransac_seed: int = 1
+    hypotheses: int = 1
+    """Distinct feature-based candidate transforms handed on to validation (the thesis keeps only the
+    best); 0 switches the feature stages off."""
+    # --- gravity-aligned global search (coopd)
+    search: bool = False
+    """Propose hypotheses by the exhaustive yaw + shift search of yaw_search (needs gravity)."""
+    search_cell_m: float = 0.3
+    search_yaw_step_deg: float = 2.0
+    search_wall_cells: int = 3
+    search_free_penalty: float = 2.0
+    search_free_cells: int = 5
+    """A column counts as seen free with no occupied and at least this many free cells in the slab."""
+    search_wall_weight_cap: int = 1
+    """Wall columns weigh min(occupied cells, cap): 1 makes the wall image binary."""
+    search_slab_margin_m: float = 0.4
+    """The slab searched leaves out this much above the floor and below the ceiling."""
+    search_peaks_per_yaw: int = 2
+    search_suppress_m: float = 1.5
+    search_candidates: int = 6
+    """Best search peaks refined and validated."""
+    # --- MTM and refinement (§8.8)
+    gravity_aligned: bool = False
+    """Estimate yaw + translation only (drones share gravity through their IMUs)."""
+    refine: bool = False
+    refine_iterations: int = 14
+    refine_max_points: int = 4000
+    refine_candidates: int = 4
+    """Candidates (best by coarse agreement) that are refined and validated."""
+    # --- validation (coopd; the thesis leaves it as future work)
+    min_inliers: int = 5
+    validation_max_points: int = 30000
+    min_score: float = 0.93
+    """Agreement of overlapping known cells: agree / (agree + occupied-vs-free conflicts)."""
+    min_agreement: int = 600
+    """Occupied cells of either map that land on the other's occupied surface."""
+    min_overlap: float = 0.2
+    """Agreeing share of both maps' vertical-structure samples: a transform that only touches the
+    other map at its border agrees everywhere it overlaps, but overlaps little."""
+    min_margin: float = 0.10
+    """Required lead of the best hypothesis' score over a distinct runner-up."""
+    # --- multi-map (§8, Figure 35)
+    max_rounds: int = 3
+
+    def with_(self, **changes) -> "MergeParams":
+        return replace(self, **changes)
+
+
+def thesis_params() -> MergeParams:
+    """Chapter 8 as written: 5-point RANSAC-homography, Kabsch, one hypothesis, no refinement."""
+    return MergeParams(fast_both_polarities=False)
+
+
+def coopd_params() -> MergeParams:
+    """coopd's default: gravity-aligned global search, ICP refinement, validation; no feature stage
+    (on ray-cast partial maps the feature correspondences were almost all wrong, see docs/merging.md)."""
+    return MergeParams(gravity_aligned=True, refine=True, search=True, hypotheses=0)
+
+
+def features_params() -> MergeParams:
+    """The thesis features feeding coopd's back end: gravity-steered BRIEF, 2-point yaw RANSAC with
+    several hypotheses, refinement and validation."""
+    return MergeParams(fast_both_polarities=True, match_best_k=3, match_max_distance=80,
+                       ransac_model="yaw", ransac_iterations=3000, hypotheses=8,
+                       gravity_aligned=True, refine=True)
+
+
+def rigid_params() -> MergeParams:
+    """6-DoF variant: 3-point Kabsch RANSAC with validation and refinement (no gravity assumption)."""
+    return features_params().with_(ransac_model="rigid", gravity_aligned=False, ransac_iterations=5000)
+
+
+VARIANTS = {"coopd": coopd_params, "features": features_params, "rigid": rigid_params,
+            "thesis": thesis_params}

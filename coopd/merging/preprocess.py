@@ -1,0 +1,147 @@
+"""Preprocessing (§8.1): intensity image, dilate, erode, Gaussian smoothing, downsampling.
+
+The occupancy grid becomes an image of intensities 0..255 (occupancy * 2.55, as the FAST threshold
+th = 80 is an image threshold); unknown and inaccessible cells read 0, like free space, so the border
+of the explored region is not mistaken for a structure of the world.
+"""
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from ..grid import OccupancyGrid
+from .params import MergeParams
+
+_JIT = {"nogil": True, "cache": True}
+
+
+@dataclass(frozen=True)
+class FeatureImage:
+    """A preprocessed map: intensities, which cells were known, and where cell [0,0,0] is (metres)."""
+
+    image: np.ndarray
+    known: np.ndarray
+    origin_m: np.ndarray
+    cell_m: float
+
+    def to_metres(self, idx: np.ndarray) -> np.ndarray:
+        """Map-frame centres (metres) of image cells given by array index (…, 3)."""
+        return self.origin_m + np.asarray(idx, dtype=np.float64) * self.cell_m
+
+
+def intensity(cells: np.ndarray) -> np.ndarray:
+    """float32 image 0..255 of int8 occupancy cells (unknown/inaccessible -> 0)."""
+    return np.where(cells >= 0, cells.astype(np.float32) * np.float32(2.55), np.float32(0.0))
+
+
+@nb.njit(**_JIT)
+def _extreme_along_first_axis(src, dst, radius, take_max):
+    """dst[i] = max (or min) of src[i-radius .. i+radius] along axis 0 (clipped at the borders)."""
+    n = src.shape[0]
+    for i in range(n):
+        lo = max(0, i - radius)
+        hi = min(n - 1, i + radius)
+        for y in range(src.shape[1]):
+            for z in range(src.shape[2]):
+                v = src[lo, y, z]
+                for k in range(lo + 1, hi + 1):
+                    w = src[k, y, z]
+                    if (w > v) if take_max else (w < v):
+                        v = w
+                dst[i, y, z] = v
+
+
+@nb.njit(**_JIT)
+def _convolve_first_axis(src, dst, weights):
+    """dst = src convolved with symmetric weights along axis 0 (borders renormalised)."""
+    n = src.shape[0]
+    r = (weights.shape[0] - 1) // 2
+    for i in range(n):
+        lo = max(0, i - r)
+        hi = min(n - 1, i + r)
+        norm = 0.0
+        for k in range(lo, hi + 1):
+            norm += weights[k - i + r]
+        for y in range(src.shape[1]):
+            for z in range(src.shape[2]):
+                acc = 0.0
+                for k in range(lo, hi + 1):
+                    acc += weights[k - i + r] * src[k, y, z]
+                dst[i, y, z] = acc / norm
+
+
+def _separable(img: np.ndarray, kernel, *args) -> np.ndarray:
+    """Apply a first-axis kernel along x, y and z in turn."""
+    out = np.ascontiguousarray(img, dtype=np.float32)
+    for axis in range(3):
+        src = np.moveaxis(out, axis, 0)
+        dst = np.empty_like(src)
+        kernel(src, dst, *args)
+        out = np.ascontiguousarray(np.moveaxis(dst, 0, axis))
+    return out
+
+
+def dilate(img: np.ndarray, radius: int = 1, iterations: int = 1) -> np.ndarray:
+    """Grey dilation with a cube of half-size radius."""
+    for _ in range(iterations):
+        img = _separable(img, _extreme_along_first_axis, radius, True)
+    return img
+
+
+def erode(img: np.ndarray, radius: int = 1, iterations: int = 1) -> np.ndarray:
+    """Grey erosion with a cube of half-size radius."""
+    for _ in range(iterations):
+        img = _separable(img, _extreme_along_first_axis, radius, False)
+    return img
+
+
+def gaussian(img: np.ndarray, radius: int = 3, sigma: float = 1.0, iterations: int = 1) -> np.ndarray:
+    """Separable Gaussian smoothing truncated at radius cells."""
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    w = np.exp(-0.5 * (x / sigma) ** 2).astype(np.float32)
+    for _ in range(iterations):
+        img = _separable(img, _convolve_first_axis, w)
+    return img
+
+
+@nb.njit(**_JIT)
+def _block_mean(img, known, f, out, out_known):
+    """Average f^3 blocks of img; a block is known when any of its cells is."""
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            for k in range(out.shape[2]):
+                acc = 0.0
+                kn = False
+                for a in range(f):
+                    for b in range(f):
+                        for c in range(f):
+                            acc += img[i * f + a, j * f + b, k * f + c]
+                            kn = kn or known[i * f + a, j * f + b, k * f + c]
+                out[i, j, k] = acc / (f * f * f)
+                out_known[i, j, k] = kn
+
+
+def downsample(img: np.ndarray, known: np.ndarray, radius: int = 1):
+    """Block means with factor 2*radius per axis (eq. 34); radius 0 leaves the image as it is."""
+    f = max(1, 2 * radius)
+    shape = tuple(max(1, s // f) for s in img.shape)
+    pad = [(0, max(0, sh * f - s)) for sh, s in zip(shape, img.shape, strict=True)]
+    if any(p[1] for p in pad):
+        img, known = np.pad(img, pad), np.pad(known, pad)
+    out = np.empty(shape, dtype=np.float32)
+    out_known = np.empty(shape, dtype=np.bool_)
+    _block_mean(img, known, f, out, out_known)
+    return out, out_known
+
+
+def preprocess(grid: OccupancyGrid, params: MergeParams) -> FeatureImage:
+    """§8.1 in order: dilate, erode, Gaussian, downsample; returns the image features are found on."""
+    img = intensity(grid.cells)
+    img = dilate(img, params.dilate_radius, params.dilate_iterations)
+    img = erode(img, params.erode_radius, params.erode_iterations)
+    img = gaussian(img, params.gaussian_radius, params.gaussian_sigma, params.gaussian_iterations)
+    img, known = downsample(img, grid.cells != -1, params.downsample_radius)
+    f = max(1, 2 * params.downsample_radius)
+    origin = (grid.offset + (f - 1) / 2.0) * grid.resolution
+    return FeatureImage(img, known, origin, f * grid.resolution)

@@ -1,0 +1,121 @@
+"""Validation of a candidate transform against both full-resolution grids (thesis §8.8 future work).
+
+Occupied cells on vertical structures of each map are carried into the other. Landing on (or next
+to) an occupied cell is an agreement; landing on a free cell with no occupied neighbour is a conflict
+(a wall where the other map saw through). Unknown says nothing.
+score = agree / (agree + conflicts), counted both ways.
+"""
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from ..geometry import invert
+from ..grid import OccupancyGrid
+
+_JIT = {"nogil": True, "cache": True}
+UNSEEN, FREE, NEAR_OCCUPIED = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class MapSummary:
+    """What validation and refinement need of a map: cell classes and a sample of occupied points."""
+
+    classes: np.ndarray
+    offset: np.ndarray
+    resolution: float
+    occupied_m: np.ndarray
+    """All occupied cell centres (metres, map frame)."""
+    sample_m: np.ndarray
+    """At most validation_max_points of the occupied cells on vertical structures, spread evenly."""
+
+
+@nb.njit(**_JIT)
+def classify(cells, threshold):
+    """UNSEEN / FREE / NEAR_OCCUPIED (occupied within one cell, 26-neighbourhood) per cell."""
+    mx, my, mz = cells.shape
+    out = np.zeros(cells.shape, dtype=np.uint8)
+    for x in range(mx):
+        for y in range(my):
+            for z in range(mz):
+                v = cells[x, y, z]
+                if v >= 0:
+                    out[x, y, z] = FREE
+    for x in range(mx):
+        for y in range(my):
+            for z in range(mz):
+                if cells[x, y, z] >= threshold:
+                    for a in range(max(0, x - 1), min(mx, x + 2)):
+                        for b in range(max(0, y - 1), min(my, y + 2)):
+                            for c in range(max(0, z - 1), min(mz, z + 2)):
+                                out[a, b, c] = NEAR_OCCUPIED
+    return out
+
+
+def vertical_structure(occ: np.ndarray) -> np.ndarray:
+    """Occupied cells with an occupied cell straight above or below: walls and furniture sides.
+
+    Floors and ceilings agree under any horizontal shift or yaw, so counting them would let a wrong
+    transform that merely lays floor on floor look good; validation counts vertical structure only."""
+    v = np.zeros_like(occ)
+    v[:, :, 1:] |= occ[:, :, 1:] & occ[:, :, :-1]
+    v[:, :, :-1] |= occ[:, :, :-1] & occ[:, :, 1:]
+    return v
+
+
+def summarise(grid: OccupancyGrid, threshold: int, max_points: int) -> MapSummary:
+    """Classes and occupied points of a grid, computed once per map."""
+    occ_mask = grid.cells >= threshold
+    pts = (np.argwhere(occ_mask) + grid.offset) * grid.resolution
+    vert = (np.argwhere(vertical_structure(occ_mask)) + grid.offset) * grid.resolution
+    step = max(1, len(vert) // max(1, max_points))
+    return MapSummary(classify(grid.cells, threshold), grid.offset, grid.resolution, pts, vert[::step].copy())
+
+
+@nb.njit(**_JIT)
+def _count(points, t, classes, offset, res):
+    """(agreements, conflicts) of points moved by t into a classified grid."""
+    agree = 0
+    conflict = 0
+    mx, my, mz = classes.shape
+    for i in range(points.shape[0]):
+        p = points[i]
+        x = t[0, 0] * p[0] + t[0, 1] * p[1] + t[0, 2] * p[2] + t[0, 3]
+        y = t[1, 0] * p[0] + t[1, 1] * p[1] + t[1, 2] * p[2] + t[1, 3]
+        z = t[2, 0] * p[0] + t[2, 1] * p[1] + t[2, 2] * p[2] + t[2, 3]
+        kx = int(np.floor(x / res + 0.5)) - offset[0]
+        ky = int(np.floor(y / res + 0.5)) - offset[1]
+        kz = int(np.floor(z / res + 0.5)) - offset[2]
+        if kx < 0 or ky < 0 or kz < 0 or kx >= mx or ky >= my or kz >= mz:
+            continue
+        c = classes[kx, ky, kz]
+        if c == NEAR_OCCUPIED:
+            agree += 1
+        elif c == FREE:
+            conflict += 1
+    return agree, conflict
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """How well a transform b -> a makes the two maps agree."""
+
+    agree: int
+    conflicts: int
+
+    @property
+    def score(self) -> float:
+        return self.agree / max(1, self.agree + self.conflicts)
+
+    def support(self, conflict_weight: float = 3.0) -> float:
+        """Ranking value: agreements minus weighted conflicts."""
+        return self.agree - conflict_weight * self.conflicts
+
+
+def agreement(a: MapSummary, b: MapSummary, t_ab: np.ndarray) -> Agreement:
+    """Agreement of b moved into a by t_ab, counted from both sides."""
+    t_ab = np.ascontiguousarray(t_ab, dtype=np.float64)
+    g1, c1 = _count(b.sample_m, t_ab, a.classes, a.offset, a.resolution)
+    g2, c2 = _count(a.sample_m, invert(t_ab), b.classes, b.offset, b.resolution)
+    return Agreement(int(g1 + g2), int(c1 + c2))

@@ -1,0 +1,165 @@
+"""Gravity-aligned global search: every yaw, every horizontal shift, scored by FFT correlation of
+top-view wall images with a free-space penalty; the vertical offset from floor/ceiling histograms.
+
+Drones share gravity through their IMUs, so two maps differ by yaw + translation (roll and pitch of a
+few degrees are left to the refinement). Walls are vertical: seen from above they are the columns
+with several occupied cells. A shift that lays one map's walls onto the other's walls scores, one
+that lays them onto space the other map saw free is penalised, which is what separates the true
+alignment from 90/180-degree flips and shifts along repeated walls.
+"""
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from scipy import fft as sfft
+
+from ..geometry import rigid, rotation_z
+from ..grid import OccupancyGrid
+from .params import MergeParams
+
+_JIT = {"nogil": True, "cache": True}
+
+
+@dataclass(frozen=True)
+class TopView:
+    """Columns of a map's slab between floor and ceiling: occupied counts (walls weigh by height) and
+    columns seen entirely free."""
+
+    walls: np.ndarray
+    wall_weight: np.ndarray
+    free: np.ndarray
+
+
+def height_histogram(grid: OccupancyGrid, threshold: int) -> tuple[np.ndarray, float]:
+    """Occupied cells per z layer and the height (metres) of layer 0."""
+    occ = grid.cells >= threshold
+    return occ.sum(axis=(0, 1)).astype(np.float64), float(grid.offset[2] * grid.resolution)
+
+
+def floor_and_ceiling(hist: np.ndarray, z0: float, resolution: float) -> tuple[float, float]:
+    """Heights of the strongest occupied layer in the lower and in the upper part of the occupied range."""
+    nz = np.flatnonzero(hist)
+    if len(nz) == 0:
+        return z0, z0
+    lo, hi = nz[0], nz[-1]
+    cut = lo + (hi - lo) // 2
+    f = lo + int(np.argmax(hist[lo:cut + 1]))
+    c = cut + int(np.argmax(hist[cut:hi + 1]))
+    return z0 + f * resolution, z0 + c * resolution
+
+
+def top_view(grid: OccupancyGrid, z_lo: float, z_hi: float, params: MergeParams) -> TopView:
+    """Top view of the slab z_lo..z_hi (metres, map frame): wall columns and all-free columns."""
+    res = grid.resolution
+    k0 = int(np.floor(z_lo / res + 0.5)) - grid.offset[2]
+    k1 = int(np.floor(z_hi / res + 0.5)) - grid.offset[2]
+    k0, k1 = max(k0, 0), min(k1, grid.shape[2] - 1)
+    if k1 < k0:
+        return TopView(np.empty((0, 2)), np.empty(0), np.empty((0, 2)))
+    slab = grid.cells[:, :, k0:k1 + 1]
+    occ = (slab >= params.occupied_threshold).sum(axis=2)
+    free = ((slab >= 0) & (slab < params.occupied_threshold)).sum(axis=2)
+    ij = np.argwhere(occ >= params.search_wall_cells)
+    fj = np.argwhere((occ == 0) & (free >= params.search_free_cells))
+    off = grid.offset[:2]
+    weight = np.minimum(occ[ij[:, 0], ij[:, 1]], params.search_wall_weight_cap).astype(np.float32)
+    return TopView((ij + off) * res, weight, (fj + off) * res)
+
+
+@nb.njit(**_JIT)
+def _raster_into(img, points, weights, c, s, origin, cell):
+    """img[pixel] = max weight of the points, turned by the yaw (cos c, sin s), falling in it."""
+    nx, ny = img.shape
+    for i in range(points.shape[0]):
+        x = c * points[i, 0] - s * points[i, 1]
+        y = s * points[i, 0] + c * points[i, 1]
+        ix = int(np.floor((x - origin[0]) / cell))
+        iy = int(np.floor((y - origin[1]) / cell))
+        if 0 <= ix < nx and 0 <= iy < ny and weights[i] > img[ix, iy]:
+            img[ix, iy] = weights[i]
+
+
+@nb.njit(**_JIT)
+def _clear_near_walls(free, walls):
+    """Drop free pixels within one pixel of a wall pixel (a wall's own pixel holds the free columns
+    in front of it, which must not count against a wall laid there)."""
+    nx, ny = free.shape
+    for x in range(nx):
+        for y in range(ny):
+            if free[x, y] == 0:
+                continue
+            for a in range(max(0, x - 1), min(nx, x + 2)):
+                for b in range(max(0, y - 1), min(ny, y + 2)):
+                    if walls[a, b] > 0:
+                        free[x, y] = 0
+
+
+def _images(view: TopView, yaw: float, origin: np.ndarray, cell: float, n: tuple):
+    """(wall image, free image) of a top view turned by yaw, pixel [0, 0] at origin."""
+    c, s = float(np.cos(yaw)), float(np.sin(yaw))
+    walls = np.zeros(n, dtype=np.float32)
+    free = np.zeros(n, dtype=np.float32)
+    _raster_into(walls, view.walls, view.wall_weight, c, s, origin, cell)
+    _raster_into(free, view.free, np.ones(len(view.free), dtype=np.float32), c, s, origin, cell)
+    _clear_near_walls(free, walls)
+    return walls, free
+
+
+def vertical_offset(ha: np.ndarray, za: float, hb: np.ndarray, zb: float, resolution: float) -> float:
+    """tz (metres) aligning b's occupied-height histogram to a's (floors and ceilings line up)."""
+    if ha.sum() == 0 or hb.sum() == 0:
+        return 0.0
+    c = np.correlate(ha, hb, mode="full")
+    lag = int(np.argmax(c)) - (len(hb) - 1)
+    return za - zb + lag * resolution
+
+
+def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid,
+           params: MergeParams) -> list[tuple[float, np.ndarray]]:
+    """(correlation score, 4x4 b -> a) for the best peaks over all yaws, strongest first."""
+    res = a_grid.resolution
+    ha, za = height_histogram(a_grid, params.occupied_threshold)
+    hb, zb = height_histogram(b_grid, params.occupied_threshold)
+    tz = vertical_offset(ha, za, hb, zb, res)
+    floor, ceiling = floor_and_ceiling(ha, za, res)
+    z_lo, z_hi = floor + params.search_slab_margin_m, ceiling - params.search_slab_margin_m
+    if z_hi <= z_lo:
+        z_lo, z_hi = floor, ceiling
+    a = top_view(a_grid, z_lo, z_hi, params)
+    b = top_view(b_grid, z_lo - tz, z_hi - tz, params)
+    if len(a.walls) == 0 or len(b.walls) == 0:
+        return []
+    cell = params.search_cell_m
+    a_pts = np.concatenate([a.walls, a.free])
+    a_org = a_pts.min(axis=0)
+    a_ext = np.ceil((a_pts.max(axis=0) - a_org) / cell).astype(int) + 1
+    centre = b.walls.mean(axis=0)
+    b = TopView(b.walls - centre, b.wall_weight, b.free - centre)
+    b_rad = float(np.max(np.linalg.norm(np.concatenate([b.walls, b.free]), axis=1)))
+    b_ext = int(np.ceil(2 * b_rad / cell)) + 2
+    n = tuple(sfft.next_fast_len(int(e + b_ext), real=True) for e in a_ext)
+    wa_img, fa_img = _images(a, 0.0, a_org, cell, n)
+    wa, fa = sfft.rfft2(wa_img), sfft.rfft2(fa_img)
+    lam = params.search_free_penalty
+    b_org = np.array([-b_rad, -b_rad])
+    found = []
+    for yaw in np.radians(np.arange(0.0, 360.0, params.search_yaw_step_deg)):
+        r = rotation_z(yaw)[:2, :2]
+        wb_img, fb_img = _images(b, yaw, b_org, cell, n)
+        wb, fb = np.conj(sfft.rfft2(wb_img)), np.conj(sfft.rfft2(fb_img))
+        score = sfft.irfft2(wa * wb - lam * (wa * fb + fa * wb), s=n)
+        for _ in range(params.search_peaks_per_yaw):
+            k = int(np.argmax(score))
+            i, j = np.unravel_index(k, n)
+            s = float(score[i, j])
+            si = i if i <= a_ext[0] else i - n[0]  # shifts span [-b_ext, a_ext]: one period
+            sj = j if j <= a_ext[1] else j - n[1]
+            t_xy = a_org - b_org + np.array([si, sj]) * cell - r @ centre
+            found.append((s, rigid(rotation_z(yaw), [t_xy[0], t_xy[1], tz])))
+            rad = int(np.ceil(params.search_suppress_m / cell))
+            ii = np.arange(i - rad, i + rad + 1) % n[0]
+            jj = np.arange(j - rad, j + rad + 1) % n[1]
+            score[np.ix_(ii, jj)] = -np.inf
+    found.sort(key=lambda x: -x[0])
+    return found

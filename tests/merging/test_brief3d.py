@@ -1,0 +1,75 @@
+import numpy as np
+
+from coopd.merging.brief3d import describe, make_sample
+from coopd.merging.matching import hamming_block
+from coopd.merging.orientation import orientations
+from coopd.merging.params import MergeParams
+
+
+def _scene(seed=3):
+    """An asymmetric room: walls, a floor and a few boxes, as an intensity image."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((48, 48, 24), dtype=np.float32)
+    img[:, :, :2] = 240
+    img[:3] = 240
+    img[:, :3] = 240
+    for _ in range(6):
+        x, y = rng.integers(5, 40, 2)
+        sx, sy, sz = rng.integers(2, 7, 3)
+        img[x:x + sx, y:y + sy, 2:2 + sz] = 240
+    return img
+
+
+def _rot90_key(k, shape):
+    """Index of cell k after np.rot90(img, 1, axes=(0, 1)) (a +90 degree yaw of the grid)."""
+    x, y, z = k
+    return np.array([shape[1] - 1 - y, x, z])
+
+
+def test_sample_is_seeded_and_inside_the_window():
+    s = make_sample(256, 31, 42)
+    assert s.shape == (512, 3) and np.abs(s).max() <= 15.5
+    assert np.array_equal(s, make_sample(256, 31, 42))
+
+
+def test_steered_descriptor_is_invariant_to_a_90_degree_yaw_of_the_grid():
+    params = MergeParams(gravity_aligned=True, descriptor_window=15)
+    img = _scene()
+    rot = np.ascontiguousarray(np.rot90(img, 1, axes=(0, 1)))
+    kp = np.array([[10, 12, 5], [20, 30, 6], [33, 18, 4], [14, 36, 8]], dtype=np.int64)
+    kr = np.array([_rot90_key(k, img.shape) for k in kp], dtype=np.int64)
+    da = describe(img, kp, orientations(img, kp, params), params)
+    db = describe(rot, kr, orientations(rot, kr, params), params)
+    ang_a = orientations(img, kp, params)[:, 2]
+    ang_b = orientations(rot, kr, params)[:, 2]
+    # Gauss-Seidel sweeps in a fixed order, so the field turns with the grid only approximately
+    assert np.allclose(np.angle(np.exp(1j * (ang_b - ang_a - np.pi / 2))), 0, atol=0.25)
+    d = hamming_block(da, db)
+    same = np.diag(d)
+    assert same.max() <= 26  # up to resampling of rounded sample points (of 256 tests)
+    assert same.max() < np.median(d[~np.eye(len(kp), dtype=bool)])
+
+
+def test_unsteered_descriptor_is_not_invariant():
+    """The check above can fail: without steering a 90 degree turn changes the descriptor a lot."""
+    params = MergeParams(gravity_aligned=True, descriptor_window=15)
+    img = _scene()
+    rot = np.ascontiguousarray(np.rot90(img, 1, axes=(0, 1)))
+    kp = np.array([[4, 12, 3], [20, 4, 3]], dtype=np.int64)  # next to a wall and the floor
+    kr = np.array([_rot90_key(k, img.shape) for k in kp], dtype=np.int64)
+    zero = np.zeros((2, 3))
+    d = hamming_block(describe(img, kp, zero, params), describe(rot, kr, zero, params))
+    steered = hamming_block(describe(img, kp, orientations(img, kp, params), params),
+                            describe(rot, kr, orientations(rot, kr, params), params))
+    assert np.diag(d).min() > 40
+    assert np.diag(steered).max() < np.diag(d).min()
+
+
+def test_local_and_global_orientation_agree_near_a_wall():
+    img = np.zeros((30, 30, 30), dtype=np.float32)
+    img[:5] = 250
+    kp = np.array([[7, 15, 15]], dtype=np.int64)
+    g = orientations(img, kp, MergeParams(orientation_mode="global"))
+    loc = orientations(img, kp, MergeParams(orientation_mode="local"))
+    # the field falls away from the wall at x < 5: yaw points along +x
+    assert abs(g[0, 2]) < 0.05 and abs(loc[0, 2]) < 0.05

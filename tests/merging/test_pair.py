@@ -1,0 +1,44 @@
+import numpy as np
+import pytest
+
+from coopd.geometry import rotation_angle_deg
+from coopd.merging.pair import merge_pair
+from coopd.merging.params import coopd_params, thesis_params
+
+
+def _errors(t, truth):
+    return rotation_angle_deg(t[:3, :3].T @ truth[:3, :3]), float(np.linalg.norm(t[:3, 3] - truth[:3, 3]))
+
+
+def test_merge_pair_recovers_the_transform_of_overlapping_maps(near_pair):
+    r = merge_pair(near_pair.a, near_pair.b, coopd_params())
+    assert r.accepted, r.reason
+    rot, trans = _errors(r.transform, near_pair.a_from_b)
+    assert rot < 2.0 and trans < 0.2
+    assert r.inliers >= 5 and r.score > 0.93
+    assert {"search", "validate", "summarise"} <= set(r.timings)
+
+
+def test_merge_pair_rejects_maps_that_do_not_overlap(far_pair):
+    r = merge_pair(far_pair.a, far_pair.b, coopd_params())
+    assert not r.accepted
+    assert r.reason != "accepted"
+
+
+@pytest.mark.slow
+def test_thesis_variant_runs_every_stage_and_validation_guards_it(near_pair):
+    r = merge_pair(near_pair.a, near_pair.b, thesis_params())
+    assert {"preprocess", "fast3d", "filter", "orientation", "describe", "match", "ransac"} <= set(r.timings)
+    if r.accepted:  # validation must never let a wrong transform through
+        rot, trans = _errors(r.transform, near_pair.a_from_b)
+        assert rot < 2.0 and trans < 0.3
+
+
+def test_merge_pair_refuses_empty_and_featureless_maps_with_a_reason():
+    from coopd.grid import OccupancyGrid
+
+    empty = OccupancyGrid.empty((10, 10, 10))
+    free = OccupancyGrid(np.full((30, 30, 10), 5, dtype=np.int8), 0.1, (-15, -15, 0))
+    for a, b in [(empty, empty), (free, free), (empty, free)]:
+        r = merge_pair(a, b, coopd_params())
+        assert not r.accepted and r.reason

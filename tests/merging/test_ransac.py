@@ -1,0 +1,47 @@
+import numpy as np
+import pytest
+
+from coopd.geometry import euler_to_matrix, rigid, rotation_angle_deg, rotation_z
+from coopd.merging.params import MergeParams
+from coopd.merging.ransac import filter_correspondences, homography, residuals
+
+
+def _data(t, n=60, outliers=0.5, seed=0):
+    rng = np.random.default_rng(seed)
+    pb = rng.uniform(-8, 8, (n, 3))
+    pa = pb @ t[:3, :3].T + t[:3, 3] + rng.normal(0, 0.02, (n, 3))
+    bad = rng.random(n) < outliers
+    pa[bad] = rng.uniform(-8, 8, (bad.sum(), 3))
+    return pb, pa, ~bad
+
+
+def test_homography_of_five_exact_rigid_correspondences_reproduces_them():
+    t = rigid(euler_to_matrix(0.1, 0.2, 1.0), [1, 2, 3])
+    pb = np.random.default_rng(3).uniform(-5, 5, (5, 3))
+    pa = pb @ t[:3, :3].T + t[:3, 3]
+    h = homography(pb, pa)
+    assert residuals(h, pb, pa, True).max() < 1e-6
+
+
+@pytest.mark.parametrize("model", ["homography", "rigid", "yaw"])
+def test_ransac_finds_the_inliers_among_half_outliers(model):
+    t = rigid(rotation_z(np.radians(130)), [5.0, -3.0, 0.4])
+    pb, pa, good = _data(t)
+    params = MergeParams(ransac_model=model, ransac_iterations=3000 if model == "homography" else 1000,
+                         hypotheses=3, gravity_aligned=model == "yaw")
+    hyps = filter_correspondences(pb, pa, 0.15, params)
+    best = hyps[0]
+    assert rotation_angle_deg(best.transform[:3, :3].T @ t[:3, :3]) < 1.0
+    assert np.linalg.norm(best.transform[:3, 3] - t[:3, 3]) < 0.1
+    assert best.inlier_count >= 0.9 * good.sum() and not best.inliers[~good].sum() > 2
+
+
+def test_ransac_hypotheses_are_distinct():
+    t = rigid(rotation_z(0.3), [1.0, 0.0, 0.0])
+    pb, pa, _ = _data(t, outliers=0.6, seed=4)
+    hyps = filter_correspondences(pb, pa, 0.15, MergeParams(ransac_model="rigid", hypotheses=4))
+    for i in range(len(hyps)):
+        for j in range(i):
+            a, b = hyps[i].transform, hyps[j].transform
+            assert (rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) >= 10
+                    or np.linalg.norm(a[:3, 3] - b[:3, 3]) >= 1.0)
