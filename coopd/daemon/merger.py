@@ -5,9 +5,10 @@ by the period and by `coopctl merge-now`. Received maps rest compressed in the s
 are decompressed only inside a merge, under a "merge-scratch" reservation of the memory budget;
 a merge that would not fit is deferred and reported, never half-done.
 
-The registration itself is coopd.merging.merge_all(reference, others, params); until a build has
-it, the global map is the local map fused with nothing and every merge request answers
-"merging: not available in this build".
+The registration and fusion are coopd.merging.merge_all(reference, others, params) ->
+GlobalMergeResult(global_map, results per input map: accepted, transform, score, reason). In a
+build without it the global map is the local map fused with nothing and every merge request
+answers "merging: not available in this build".
 """
 
 import logging
@@ -19,12 +20,16 @@ from collections.abc import Callable
 import numpy as np
 
 from coopd.daemon.budget import BudgetExceeded, MemoryBudget
-from coopd.grid import OccupancyGrid, fuse_transformed
+from coopd.grid import OccupancyGrid
 from coopd.sharing.wire import DEFAULT_LIMITS, DecodeLimits, MapMeta, decode_map, peek
 
 log = logging.getLogger("coopd.daemon")
 
 NOT_AVAILABLE = "merging: not available in this build"
+SCRATCH_BYTES_PER_CELL = 8
+"""Merge scratch budgeted per input cell (local + received): the decoded int8 maps, the growing
+global map, float working copies of preprocessing and features; checked against the peak RSS of
+`scripts/bench daemon`."""
 
 
 def find_merge_all() -> Callable | None:
@@ -34,11 +39,6 @@ def find_merge_all() -> Callable | None:
     except ImportError:
         return None
     return merge_all
-
-
-def per_vehicle(result) -> dict:
-    """merge_all's outcome per vehicle id: objects with `transform` (4x4), `accepted`, `score`."""
-    return dict(result.vehicles)
 
 
 def offset_summary(transform) -> dict:
@@ -170,31 +170,23 @@ class Merger:
         if not stored:
             self._set_global(None)
             return "nothing", "no received maps: the global map is the local map"
-        infos = [(m, peek(m.data)) for m in stored]
+        infos = sorted(((m, peek(m.data)) for m in stored), key=lambda mi: mi[0].vehicle_id)
         for _, info in infos:
             info.check(self.limits)
         local_grid, local_version = self.local_snapshot()
-        received_cells = sum(info.cells for _, info in infos)
-        # decoded received maps + the growing global map (at most local + all received moved in)
-        need = received_cells + local_grid.size + received_cells
+        input_cells = local_grid.size + sum(info.cells for _, info in infos)
+        need = SCRATCH_BYTES_PER_CELL * input_cells
         try:
             with self.budget.scratch("merge-scratch", need):
-                others = {m.vehicle_id: decode_map(m.data, self.limits)[0] for m, _ in infos}
+                vids = [m.vehicle_id for m, _ in infos]
+                others = [decode_map(m.data, self.limits)[0] for m, _ in infos]
                 result = self.merge_fn(local_grid, others, self.params)
-                merged = local_grid
-                offsets, accepted = {}, []
-                for vid, entry in per_vehicle(result).items():
-                    if vid not in others:
-                        continue
-                    offsets[vid] = {
-                        "accepted": bool(entry.accepted),
-                        "score": round(float(entry.score), 4),
-                        **offset_summary(entry.transform),
-                    }
-                    if entry.accepted:
-                        fuse_transformed(merged, others[vid], np.asarray(entry.transform, dtype=np.float64))
-                        accepted.append(vid)
                 del others
+                merged = result.global_map
+                offsets = {}
+                for vid, r in zip(vids, result.results, strict=True):
+                    offsets[vid] = {"accepted": bool(r.accepted), "score": round(float(r.score), 4),
+                                    "reason": str(r.reason), **offset_summary(r.transform)}
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
         if not self.budget.reserve("global", merged.size):
@@ -202,9 +194,10 @@ class Merger:
         self.offsets = offsets
         version = (self._global[1].version + 1) if self._global is not None else 1
         self._set_global((merged, MapMeta(self.vehicle_id, version, time.time())))
+        accepted = [v for v, o in offsets.items() if o["accepted"]]
         return "done", (
-            f"{len(accepted)} of {len(infos)} received maps fused (local v{local_version}); "
-            f"global {'x'.join(map(str, merged.shape))} cells"
+            f"{len(accepted)} of {len(infos)} received maps merged {accepted} (local v{local_version}, "
+            f"{result.rounds} rounds); global {'x'.join(map(str, merged.shape))} cells"
         )
 
     def _set_global(self, value) -> None:

@@ -20,9 +20,9 @@ from coopd.daemon.checkpoint import CheckpointStore
 from coopd.daemon.config import from_dict
 from coopd.daemon.main import main
 from coopd.daemon.merger import NOT_AVAILABLE, Merger
-from coopd.daemon.service import FRAME_FILE, Daemon, DaemonNotifier, StartupError
+from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, DaemonNotifier, StartupError
 from coopd.geometry import rigid, rotation_z
-from coopd.grid import OccupancyGrid
+from coopd.grid import OccupancyGrid, fuse_transformed
 from coopd.sharing.wire import MapMeta, decode_map, encode_map
 
 
@@ -74,8 +74,9 @@ def test_second_daemon_on_a_served_control_socket_refuses_to_start(wd):
 
 
 # ---------------------------------------------------------------------------------- control, notify
-def test_commands_without_a_vehicle(wd):
-    d = Daemon(_config(wd, memory_mb=400))
+@pytest.mark.parametrize("merging", ["this build", "not in the build"])
+def test_commands_without_a_vehicle(wd, merging):
+    d = Daemon(_config(wd, memory_mb=400), merge_fn=FROM_BUILD if merging == "this build" else None)
     d.start()
     runner = threading.Thread(target=d.run, daemon=True)
     runner.start()
@@ -85,17 +86,21 @@ def test_commands_without_a_vehicle(wd):
         assert status["state"] == "running" and status["vehicle_id"] == 1
         assert status["link"]["state"] == "connecting" and status["pose"] is None
         assert status["mapping"]["state"].startswith("paused: odometry stale")
-        assert status["merging"] == NOT_AVAILABLE
+        assert status["merging"] == ("idle" if merging == "this build" else NOT_AVAILABLE)
         assert status["memory"]["budget_bytes"] == 400 << 20 and status["memory"]["entries"]["local"] > 0
         roles = {t["role"]: t for t in status["threads"]}
         assert set(roles) >= {"mavlink", "camera", "mapping", "merging", "control"}
         assert roles["merging"]["applied"] == 10
         assert control.request(d.config.daemon.control_socket, "peers")[0] == {"peers": []}
         merge, _ = control.request(d.config.daemon.control_socket, "merge-now")
-        assert merge == {"outcome": "failed", "detail": NOT_AVAILABLE}
         result, blob = control.request(d.config.daemon.control_socket, "dump-map", {"map": "global"},
                                        max_blob_bytes=1 << 20)
-        assert "not available" in result["note"]
+        if merging == "this build":
+            assert merge["outcome"] == "done" and "no received maps" in merge["detail"]
+            assert result["note"] == "no merge yet: the global map is the local map"
+        else:
+            assert merge == {"outcome": "failed", "detail": NOT_AVAILABLE}
+            assert "not available" in result["note"]
         grid, meta = decode_map(blob)
         assert meta.vehicle_id == 1
         for bad in ({"map": "peer", "vehicle_id": 9}, {"map": "peer", "vehicle_id": "x"}, {"map": "moon"}):
@@ -221,11 +226,16 @@ def test_merger_fuses_accepted_maps_with_their_transform_and_defers_over_budget(
     calls = []
 
     def merge_all(reference, others, params):
-        calls.append((reference.shape, sorted(others)))
-        return SimpleNamespace(vehicles={5: SimpleNamespace(transform=t, accepted=True, score=0.8),
-                                         6: SimpleNamespace(transform=np.eye(4), accepted=False, score=0.1)})
+        """What coopd.merging.merge_all returns: the fused global map and one result per input map,
+        here with the answer known in advance (vehicle 5 at t, vehicle 6 not overlapping)."""
+        calls.append(len(others))
+        world = reference.copy()
+        fuse_transformed(world, others[0], t)
+        return SimpleNamespace(global_map=world, rounds=1, results=[
+            SimpleNamespace(accepted=True, transform=t, score=0.8, reason="accepted"),
+            SimpleNamespace(accepted=False, transform=np.eye(4), score=0.1, reason="overlap too small")])
 
-    received = [_stored(5, other), _stored(6, _box_grid(offset=(40, 0, 0)))]
+    received = [_stored(6, _box_grid(offset=(40, 0, 0))), _stored(5, other)]  # merged in vehicle id order
     budget = MemoryBudget(64 << 20, baseline_bytes=0)
     m = Merger(1, lambda: (local.copy(), 7), lambda: received, budget, period_s=3600, merge_fn=merge_all)
     out = m.merge_once("test")
@@ -239,6 +249,8 @@ def test_merger_fuses_accepted_maps_with_their_transform_and_defers_over_budget(
     assert merged.values_at(np.array([[0.0, 0.0, 0.2]]))[0] == 0  # our own map is kept
     assert m.offsets[5]["accepted"] and m.offsets[5]["translation_m"] == [3.0, 0.0, 0.0]
     assert m.offsets[5]["yaw_deg"] == 90.0 and not m.offsets[6]["accepted"]
+    assert m.offsets[6]["reason"] == "overlap too small"
+    assert "1 of 2 received maps merged [5]" in out["detail"]
     assert meta.version == 1 and budget.snapshot()["entries"]["global"] == merged.size
     assert "merge-scratch" not in budget.snapshot()["entries"]
     # a budget too small for the decompressed maps: deferred, the last global map is kept
