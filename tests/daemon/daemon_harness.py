@@ -104,6 +104,19 @@ class Sim:
         origin = np.asarray(origin_fc_enu, dtype=np.float64)
         return lambda p: (np.asarray(p) + origin) @ rot.T + np.array([x, y, 0.0])
 
+    def relative_transform(self, i: int, j: int, origin_i, origin_j) -> np.ndarray:
+        """4x4 transform carrying points of vehicle j's map frame into vehicle i's (the true offset)."""
+
+        def map_to_world(k, origin):
+            x, y, _, yaw = self.vehicles[k]["start_pose"]
+            t = np.eye(4)
+            c, s = np.cos(yaw - np.pi / 2), np.sin(yaw - np.pi / 2)
+            t[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+            t[:3, 3] = t[:3, :3] @ np.asarray(origin, dtype=np.float64) + [x, y, 0.0]
+            return t
+
+        return np.linalg.inv(map_to_world(i, origin_i)) @ map_to_world(j, origin_j)
+
     def accuracy(self, grid, i: int, origin_fc_enu) -> dict:
         from firmware_sim.worlds import build_world
 

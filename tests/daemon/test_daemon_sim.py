@@ -10,6 +10,7 @@ import struct
 import subprocess
 import time
 
+import numpy as np
 import pytest
 from daemon_harness import PYTHON, ROOT, Coopd, NotifyListener, Sim, env, port_block, wait_until, workdir
 
@@ -154,6 +155,7 @@ def test_two_daemons_share_their_maps():
     mav_port, share_port = port_block(1)
     sim = Sim(wd, mav_port, vehicles=2, speed=2.0)
     daemons = []
+    report = {}
     try:
         for i in range(2):
             other = share_port + (1 - i)
@@ -186,9 +188,23 @@ def test_two_daemons_share_their_maps():
             assert peer["address"].startswith("127.0.0.1")
             assert statuses[i]["memory"]["entries"].get(f"received:{other}", 0) > 0 or wait_until(
                 lambda d=d, other=other: d.status()["memory"]["entries"].get(f"received:{other}"), 3)
-            cli = subprocess.run([PYTHON, "-m", "coopd.cli.coopctl", "merge-now", "--socket", d.socket],
-                                 capture_output=True, text=True, env=env(), cwd=ROOT, timeout=60)
-            assert cli.returncode == 1 and "not available in this build" in cli.stdout, cli
+            cli = subprocess.run([PYTHON, "-m", "coopd.cli.coopctl", "merge-now", "--json", "--socket",
+                                  d.socket], capture_output=True, text=True, env=env(), cwd=ROOT, timeout=130)
+            outcome = json.loads(cli.stdout)
+            assert cli.returncode == 0 and outcome["outcome"] == "done", cli
+            merges = d.status()["merges"]
+            offset = merges["offsets"][str(other)]
+            report[f"vehicle {i + 1}"] = {"merge": outcome, f"offset of vehicle {other}": offset}
+            if offset["accepted"]:  # then the offset must be the true one (the maps may not overlap yet)
+                t_true = sim.relative_transform(i, 1 - i, statuses[i]["link"]["map_origin_fc_enu"],
+                                                statuses[1 - i]["link"]["map_origin_fc_enu"])
+                err = np.linalg.norm(np.array(offset["translation_m"]) - t_true[:3, 3])
+                yaw_err = abs((offset["yaw_deg"] - np.degrees(np.arctan2(t_true[1, 0], t_true[0, 0])) + 180)
+                              % 360 - 180)
+                report[f"vehicle {i + 1}"]["offset_error"] = {"m": round(float(err), 3),
+                                                              "yaw_deg": round(float(yaw_err), 2)}
+                assert err < 0.5 and yaw_err < 5.0, report
+        print(json.dumps(report))
         # received maps are checkpointed on stop and restored on start
         rc, _ = daemons[0].terminate()
         assert rc == 0
