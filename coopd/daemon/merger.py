@@ -65,6 +65,7 @@ class Merger:
         merge_fn: Callable | None = None,
         params=None,
         limits: DecodeLimits = DEFAULT_LIMITS,
+        min_gap_s: float = 0.0,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -81,6 +82,9 @@ class Merger:
         self._global: tuple[OccupancyGrid, MapMeta] | None = None
         self._cv = threading.Condition()
         self._requested = 0
+        self._urgent = False
+        self.min_gap_s = min_gap_s
+        """Received maps trigger a merge at most this often (a peer publishes every second)."""
         self._completed = 0
         self._reasons: list[str] = []
         self._stop = threading.Event()
@@ -91,10 +95,11 @@ class Merger:
         return self.merge_fn is not None
 
     # ------------------------------------------------------------------------------- requests
-    def request(self, reason: str) -> int:
-        """Ask for a merge (non-blocking); returns the request number."""
+    def request(self, reason: str, urgent: bool = False) -> int:
+        """Ask for a merge (non-blocking); returns the request number. Urgent: skip min_gap_s."""
         with self._cv:
             self._requested += 1
+            self._urgent |= urgent
             if len(self._reasons) < 16:
                 self._reasons.append(reason)
             self._cv.notify_all()
@@ -106,7 +111,7 @@ class Merger:
             return {"outcome": "failed", "detail": "merging is disabled in the configuration"}
         if not self.available:
             return {"outcome": "failed", "detail": NOT_AVAILABLE}
-        ticket = self.request("merge-now")
+        ticket = self.request("merge-now", urgent=True)
         with self._cv:
             done = self._cv.wait_for(lambda: self._completed >= ticket or self._stop.is_set(), timeout_s)
             if not done or self.last is None:
@@ -120,22 +125,28 @@ class Merger:
 
     # ----------------------------------------------------------------------------------- loop
     def run(self) -> None:
-        """Merge on request and every period_s until stopped."""
+        """Merge every period_s, on request (at most one merge per min_gap_s), at once for merge-now."""
         next_periodic = time.monotonic() + self.period_s
+        not_before = 0.0
         while not self._stop.is_set():
             with self._cv:
-                self._cv.wait_for(
-                    lambda: self._requested > self._completed or self._stop.is_set(),
-                    max(0.0, next_periodic - time.monotonic()),
-                )
+                while not self._stop.is_set():
+                    now = time.monotonic()
+                    pending = self._requested > self._completed
+                    if self._urgent or (pending and now >= not_before) or now >= next_periodic:
+                        break
+                    wake = min(next_periodic, not_before) if pending else next_periodic
+                    self._cv.wait(max(0.0, wake - now))
                 if self._stop.is_set():
                     return
                 ticket = self._requested
+                self._urgent = False
                 reasons, self._reasons = self._reasons or ["period"], []
             if time.monotonic() >= next_periodic:
                 next_periodic = time.monotonic() + self.period_s
             if self.enabled and self.available:
                 self.merge_once(",".join(sorted(set(reasons))))
+                not_before = time.monotonic() + self.min_gap_s
             with self._cv:
                 self._completed = max(self._completed, ticket)
                 self._cv.notify_all()

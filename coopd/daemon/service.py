@@ -61,6 +61,8 @@ HEALTH_MAX_AGE_S = 3.0
 """The main loop and the mapping thread must have looped within this time for WATCHDOG=1."""
 LATENCY_WINDOW = 2000
 MERGE_NOW_TIMEOUT_S = 100.0
+MERGE_MIN_GAP_S = 5.0
+"""Maps arriving faster than this (peers publish every second) are merged together, not one by one."""
 SHUTDOWN_JOIN_S = 2.0
 FROM_BUILD = "from-build"
 """Daemon(merge_fn=FROM_BUILD): coopd.merging.merge_all if this build has it (None: not available)."""
@@ -192,6 +194,7 @@ class Daemon:
             enabled=config.merging.enabled,
             merge_fn=find_merge_all() if merge_fn is FROM_BUILD else merge_fn,
             limits=DecodeLimits(config.sharing.max_map_cells, config.sharing.max_map_bytes),
+            min_gap_s=min(config.merging.period_s, MERGE_MIN_GAP_S),
         )
         self.control = ControlServer(
             config.daemon.control_socket,

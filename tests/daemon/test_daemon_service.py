@@ -278,3 +278,30 @@ def test_merger_thread_merges_on_request_and_reports_failures():
         m.stop()
         runner.join(5)
     assert not runner.is_alive()
+
+
+def test_received_maps_merge_at_most_once_per_gap_but_merge_now_at_once():
+    calls = []
+
+    def merge_all(reference, others, params):
+        calls.append(time.monotonic())
+        return SimpleNamespace(global_map=reference.copy(), rounds=1, results=[
+            SimpleNamespace(accepted=False, transform=np.eye(4), score=0.0, reason="test")])
+
+    budget = MemoryBudget(64 << 20, baseline_bytes=0)
+    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=3600,
+               merge_fn=merge_all, min_gap_s=1.0)
+    runner = threading.Thread(target=m.run, daemon=True)
+    runner.start()
+    try:
+        for _ in range(15):  # a peer publishing ten times a second for 1.5 s
+            m.request("map of vehicle 2")
+            time.sleep(0.1)
+        assert 1 <= len(calls) <= 3, np.diff(calls)
+        assert all(g >= 0.9 for g in np.diff(calls))
+        t0 = time.monotonic()
+        assert m.merge_now(10)["outcome"] == "done"
+        assert time.monotonic() - t0 < 0.8
+    finally:
+        m.stop()
+        runner.join(5)
