@@ -265,7 +265,8 @@ class SharingService:
         found = 0
         source = None if self.config.listen_host in ("", "0.0.0.0") else self.config.listen_host
         for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
-            sender = _Sender(self, PeerLink(sock, self.config.transport, self.vehicle_id, target[0]), target)
+            link = PeerLink(sock, self.config.transport, self.vehicle_id, target[0], self._server.instance)
+            sender = _Sender(self, link, target)
             with self._lock:
                 if self._stop.is_set():
                     sock.close()

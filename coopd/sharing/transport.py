@@ -368,7 +368,9 @@ class _Connection:
 class PeerLink:
     """Our side of a connection to a peer's map server: hello exchange, then transfers with acks."""
 
-    def __init__(self, sock: socket.socket, settings: TransportSettings, vehicle_id: int, address: str = ""):
+    def __init__(self, sock: socket.socket, settings: TransportSettings, vehicle_id: int, address: str = "",
+                 instance: int = 0):
+        self.instance = instance
         self.sock = sock
         self.s = settings
         self.vehicle_id = vehicle_id
@@ -397,7 +399,7 @@ class PeerLink:
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         _keepalive(self.sock)
         self.sock.sendall(mtp.hello_frame(Hello(s.block_size, self.vehicle_id, self.nonce,
-                                                s.swarm_key is not None)))
+                                                s.swarm_key is not None, self.instance)))
         head = self._recv_exact(mtp.HEAD.size, s.handshake_timeout)
         marker, kind, bs = mtp.HEAD.unpack(head)
         if marker != mtp.MARK or kind != mtp.HELLO:
