@@ -51,6 +51,16 @@ class TransportSettings:
 
     def __post_init__(self):
         mtp.check_block_size(self.block_size)
+        for name in ("connect_timeout", "read_timeout", "handshake_timeout", "idle_timeout",
+                     "transfer_base_s", "min_rate"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("max_connections", "max_connections_per_address", "max_bytes", "max_cells",
+                     "max_inflight_bytes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.max_send_rate < 0:
+            raise ValueError(f"max_send_rate must be >= 0, got {self.max_send_rate}")
         if self.swarm_key is not None and len(self.swarm_key) < 16:
             raise ValueError("swarm key must have at least 16 bytes")
 

@@ -90,7 +90,7 @@ def test_config_from_the_sharing_table():
     assert cfg.transport.read_timeout == 2.5
     assert config_from_table(1, {}).transport.swarm_key is None
     for bad in ({"blok_size": 1}, {"block_size": 10}, {"peers": ["10.0.0.9-10.0.0.1"]},
-                {"swarm_key": "short"}):
+                {"swarm_key": "short"}, {"min_rate": 0}, {"read_timeout": -1}, {"max_connections": 0}):
         with pytest.raises(ValueError):
             config_from_table(1, bad)
 
