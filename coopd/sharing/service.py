@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from . import discovery, mtp, swarmkey
+from . import discovery, mtp
 from .peers import MessageSummary, PeerTable, ReceivedStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
@@ -44,30 +44,6 @@ class SharingConfig:
     max_received_bytes: int = 1 << 30
     """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
     transport: TransportSettings = field(default_factory=TransportSettings)
-
-
-_TRANSPORT_KEYS = {f for f in TransportSettings.__dataclass_fields__ if f != "swarm_key"}
-_CONFIG_KEYS = {"listen_host", "port", "peers", "peer_ports", "scan_period", "grace_period", "relay",
-                "max_vehicles", "max_received_bytes"}
-
-
-def config_from_table(vehicle_id: int, table: dict) -> SharingConfig:
-    """A SharingConfig from the [sharing] table of coopd.toml; unknown keys are an error.
-
-    `swarm_key` is a passphrase, 'hex:...' or empty (no key); `peers`/`peer_ports` are lists.
-    """
-    unknown = set(table) - _TRANSPORT_KEYS - _CONFIG_KEYS - {"swarm_key"}
-    if unknown:
-        raise ValueError(f"unknown [sharing] settings: {', '.join(sorted(unknown))}")
-    transport = {k: v for k, v in table.items() if k in _TRANSPORT_KEYS}
-    transport["swarm_key"] = swarmkey.load_key(table.get("swarm_key"))
-    fields = {k: v for k, v in table.items() if k in _CONFIG_KEYS}
-    for k in ("peers", "peer_ports"):
-        if k in fields:
-            fields[k] = tuple(fields[k])
-    config = SharingConfig(vehicle_id=vehicle_id, transport=TransportSettings(**transport), **fields)
-    discovery.parse_targets(config.peers, config.peer_ports)  # fail at load time, not at the first scan
-    return config
 
 
 def wire_inspect(data) -> MessageSummary:
