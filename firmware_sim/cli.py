@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
@@ -47,6 +48,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--camera-range", default="0.2:5.0", help="MIN:MAX metres")
     p.add_argument("--camera-noise", type=float, default=0.0, help="range sigma at 1 m (grows with z^2)")
     p.add_argument("--camera-dropout", type=float, default=0.0)
+    p.add_argument(
+        "--start-poses",
+        default=None,
+        help="'x,y,yaw_deg;x,y,yaw_deg;...' world-frame start poses, one per vehicle "
+        "(default: the world's suggestions)",
+    )
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
     return p.parse_args(argv)
 
@@ -71,12 +78,26 @@ def camera_config(a: argparse.Namespace) -> CameraConfig | None:
     return cfg
 
 
+def parse_start_poses(text: str | None) -> list[tuple[float, float, float, float]] | None:
+    """Parse 'x,y,yaw_deg;...' into (x, y, 0, yaw_rad) poses."""
+    if text is None:
+        return None
+    poses = []
+    for part in text.split(";"):
+        x, y, yaw = (float(v) for v in part.split(","))
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            raise ValueError(f"start pose {part!r} is not finite")
+        poses.append((x, y, 0.0, math.radians(yaw)))
+    return poses
+
+
 def main(argv: list[str] | None = None) -> int:
     """Start the simulation, print the endpoints as JSON, run until SIGINT/SIGTERM or --duration."""
     a = parse_args(argv)
     try:
         cam = camera_config(a)
         world = build_world(a.world, a.seed, a.size)
+        poses = parse_start_poses(a.start_poses)
         sim = Simulation(
             world,
             a.vehicles,
@@ -85,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
             noise=a.noise,
             camera=cam,
             frame=a.frame,
+            start_poses=poses,
             mavlink_base_port=a.mavlink_port,
             camera_dir=a.camera_dir,
             camera_tcp_base_port=a.camera_tcp_port,

@@ -74,10 +74,25 @@ class Vehicle:
     )
     camera_path: str | None = None
 
+    sim: Simulation | None = field(default=None, repr=False)
+
     @property
     def system_id(self) -> int:
         """MAVLink system id (index + 1)."""
         return self.index + 1
+
+    def true_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """True world position and quaternion (w, x, y, z)."""
+        return self.sim.true_pose(self.index)
+
+    def true_trajectory(self) -> np.ndarray:
+        """Logged true trajectory: rows (t, x, y, z, qw, qx, qy, qz)."""
+        return self.sim.trajectory(self.index)
+
+    @property
+    def mavlink_endpoint(self) -> tuple[str, int] | None:
+        """(host, port) the vehicle's MAVLink socket is bound to, if MAVLink is on."""
+        return None if self.link is None else ("127.0.0.1", self.link.bound_port)
 
 
 class Simulation:
@@ -153,6 +168,7 @@ class Simulation:
                 odo,
                 cam,
             )
+            v.sim = self
             self.vehicles.append(v)
         self._setup_io(mavlink, mavlink_base_port, camera_dir, camera_tcp_base_port)
         self._record_all()
@@ -231,7 +247,7 @@ class Simulation:
     def estimated_state(self, v: Vehicle) -> EstimatedState:
         """The noise-free drifting estimate the flight controller acts on."""
         q = self.data.qpos[v.qpos_adr : v.qpos_adr + 7]
-        rot_w = quat_to_mat(q[3:])
+        rot_w = quat_to_mat(q[3:])  # from qpos (current), not xmat (kinematics of the previous step)
         vel_w = self.data.qvel[v.qvel_adr : v.qvel_adr + 3]
         omega = self.data.qvel[v.qvel_adr + 3 : v.qvel_adr + 6].copy()
         p, r, vel = v.odometry.estimate(self.time, q[:3], rot_w, vel_w)
@@ -241,6 +257,8 @@ class Simulation:
 
     def step(self, seconds: float = PHYSICS_DT) -> None:
         """Advance the simulation by at least `seconds` of simulated time (in-process, no pacing)."""
+        if self._thread is not None:
+            raise RuntimeError("step() drives the clock in-process; the real-time thread is running")
         n = max(1, int(round(seconds / PHYSICS_DT)))
         for _ in range(n):
             with self.lock:

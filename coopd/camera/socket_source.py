@@ -29,6 +29,7 @@ class SocketSourceConfig:
     max_payload_bytes: int = 8 * 1024 * 1024
     connect_timeout_s: float = 1.0
     stall_timeout_s: float = 2.0  # no byte for this long on an open connection: reconnect
+    frame_timeout_s: float = 5.0  # a started frame must complete within this (no byte-trickling driver)
     backoff_s: tuple[float, float] = (0.1, 2.0)
 
     def __post_init__(self):
@@ -36,7 +37,11 @@ class SocketSourceConfig:
             raise ValueError("camera address must be a unix socket path or tcp:host:port")
         if not (1 <= self.max_payload_bytes <= 256 * 1024 * 1024):
             raise ValueError("max_payload_bytes must be within 1 B..256 MiB")
-        if not (0 < self.stall_timeout_s <= 60 and 0 < self.connect_timeout_s <= 60):
+        if not (
+            0 < self.stall_timeout_s <= 60
+            and 0 < self.connect_timeout_s <= 60
+            and 0 < self.frame_timeout_s <= 600
+        ):
             raise ValueError("camera timeouts must be within (0, 60] s")
 
 
@@ -161,7 +166,7 @@ class SocketDepthSource:
             log.warning("camera %s broke the protocol (%s); dropping the connection", self.config.address, e)
             return "protocol_error"
 
-    def _recv_exact(self, buf: memoryview) -> None:
+    def _recv_exact(self, buf: memoryview, deadline: float = float("inf")) -> None:
         """Fill buf completely; a gap of stall_timeout_s without bytes, EOF or stop ends the connection."""
         got, last_byte = 0, time.monotonic()
         while got < len(buf):
@@ -181,15 +186,18 @@ class SocketDepthSource:
                 raise _Closed("eof")
             got += k
             last_byte = time.monotonic()
+            if last_byte > deadline:
+                raise _Closed("slow_frame")
 
     def _read_one(self) -> None:
         prefix = bytearray(4)
         self._recv_exact(memoryview(prefix))
+        deadline = time.monotonic() + self.config.frame_timeout_s
         raw = bytearray(header_length(bytes(prefix)))
-        self._recv_exact(memoryview(raw))
+        self._recv_exact(memoryview(raw), deadline)
         header = parse_header(bytes(raw), self.config.max_payload_bytes)
         payload = np.empty(header.n // 2, dtype="<u2")  # bounded by max_payload_bytes, checked above
-        self._recv_exact(memoryview(payload).cast("B"))
+        self._recv_exact(memoryview(payload).cast("B"), deadline)
         now = time.monotonic()
         if self._last_t_us is not None and header.t_us <= self._last_t_us:
             self.counters["dropped_timestamp_not_increasing"] += 1

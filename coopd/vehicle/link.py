@@ -175,6 +175,8 @@ class VehicleLink:
 
     def _ingest(self, data: bytes, now: float) -> None:
         self.counters["rx_bytes"] += len(data)
+        if self.transport.datagrams:
+            self._reset_parser()
         try:
             msgs = self.mav.parse_buffer(data) or []
         except Exception:  # pymavlink raises on some malformed input even with robust parsing
@@ -191,6 +193,15 @@ class VehicleLink:
                 self.counters["rx_handler_errors"] += 1
         if from_fc:
             self.transport.accept_source()
+
+    def _reset_parser(self) -> None:
+        """A datagram holds whole packets: a broken one must not swallow the start of the next."""
+        if self.mav.buf_index < len(self.mav.buf):
+            self.counters["rx_partial_discarded"] += 1
+        self.mav.buf = bytearray()
+        self.mav.buf_index = 0
+        self.mav.expected_length = mav.HEADER_LEN_V1 + 2
+        self.mav.have_prefix_error = False
 
     def _dispatch(self, m, now: float) -> bool:
         """Handle one message; True if it came from the FC we follow."""
@@ -347,9 +358,9 @@ class VehicleLink:
         latest = self.poses.latest()
         span = self.poses.span()
         counters = dict(self.counters)
-        counters.update({f"odometry_{k}": v for k, v in self.odometry.counters.items()})
-        counters.update({f"clock_{k}": v for k, v in self.clock.counters.items()})
-        counters.update({f"transport_{k}": v for k, v in self.transport.counters.items()})
+        counters.update({f"odometry_{k}": v for k, v in dict(self.odometry.counters).items()})
+        counters.update({f"clock_{k}": v for k, v in dict(self.clock.counters).items()})
+        counters.update({f"transport_{k}": v for k, v in dict(self.transport.counters).items()})
         return {
             "connection": self.config.connection,
             "link": self.state,

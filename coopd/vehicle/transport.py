@@ -51,6 +51,7 @@ class Transport:
 
     def __init__(self, endpoint: Endpoint):
         self.endpoint = endpoint
+        self.datagrams = endpoint.kind in ("udpin", "udpout")  # each read holds whole MAVLink packets
         self.counters = {"tx_dropped": 0, "rx_errors": 0, "reopens": 0}
 
     @property

@@ -208,3 +208,24 @@ def test_bad_configuration_is_refused():
     ):
         with pytest.raises(ValueError):
             SocketSourceConfig(**kw)
+
+
+def test_a_byte_trickling_driver_is_abandoned(sock_path, make_source):
+    def script(conn, index, stopping):
+        data = frame_bytes(header(seq=index, t_us=1000 + index))
+        if index == 0:
+            for b in data[:200]:  # one byte every 50 ms: never a stall, never a frame
+                if stopping.wait(0.05):
+                    return
+                conn.sendall(bytes([b]))
+            return
+        conn.sendall(data)
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(stall_timeout_s=0.3, frame_timeout_s=0.5)
+        f = src.slot.take(timeout=3.0)
+        assert f is not None and f.seq == 1 and src.counters["disconnect_slow_frame"] == 1
+    finally:
+        drv.close()

@@ -39,8 +39,19 @@ class Client:
                 out.append(m)
         return out
 
+    def drain(self, limit: int = 100_000) -> list:
+        """Read everything already queued (so a full socket buffer cannot drop the next reply)."""
+        out = []
+        for _ in range(limit):
+            m = self.conn.recv_match(blocking=False)
+            if m is None:
+                break
+            out.append(m)
+        return out
+
     def command(self, command: int, *params: float, timeout: float = 3.0):
         """COMMAND_LONG with up to 7 params; returns the matching COMMAND_ACK's result (or None)."""
+        self.drain()
         p = list(params) + [0.0] * (7 - len(params))
         self.mav.command_long_send(self.target, 1, command, 0, *p)
         ack = self.wait("COMMAND_ACK", lambda m: m.command == command, timeout)

@@ -213,3 +213,26 @@ def test_slow_client_loses_frames_not_the_sim(house, tmp_path):
     slow.close()
     tcp.close()
     sim.stop()
+
+
+def test_client_limit_is_enforced(tmp_path):
+    from firmware_sim.camera_server import MAX_CLIENTS, CameraPublisher
+
+    pub = CameraPublisher(str(tmp_path / "cam.sock"))
+    socks = []
+    try:
+        for _ in range(MAX_CLIENTS + 3):
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.connect(str(tmp_path / "cam.sock"))
+            socks.append(s)
+            pub.poll()
+        for _ in range(5):
+            pub.poll()
+        assert len(pub.clients) == MAX_CLIENTS and pub.clients_rejected == 3
+        pub.publish(b"x" * 10)
+        assert pub.frames_published == 1
+    finally:
+        for s in socks:
+            s.close()
+        pub.close()
+    assert not (tmp_path / "cam.sock").exists()

@@ -137,15 +137,19 @@ def test_arm_takeoff_offboard_land(sim_and_client):
     start, _ = sim.true_pose(0)
     # Offboard: stream setpoints first, then switch; fly 1.5 m forward (local NED x = initial heading).
     deadline = time.monotonic() + 6
-    switched = False
+    switched, acks = False, []
     while time.monotonic() < deadline:
         c0.mav.set_position_target_local_ned_send(
             0, 1, 1, mav.MAV_FRAME_LOCAL_NED, 0b0000_1111_1111_1000, 1.5, 0.0, -1.5, 0, 0, 0, 0, 0, 0, 0, 0
         )
         if not switched and time.monotonic() > deadline - 5.5:
-            assert c0.set_mode(MAIN_OFFBOARD) == 0
+            c0.mav.command_long_send(1, 1, mav.MAV_CMD_DO_SET_MODE, 0, 1, MAIN_OFFBOARD, 0, 0, 0, 0, 0)
             switched = True
+        acks += [
+            m for m in c0.drain() if m.get_type() == "COMMAND_ACK" and m.command == mav.MAV_CMD_DO_SET_MODE
+        ]
         time.sleep(0.05)
+    assert [a.result for a in acks] == [mav.MAV_RESULT_ACCEPTED]
     assert sim.vehicle(0).fc.main_mode == MAIN_OFFBOARD
     p, _ = sim.true_pose(0)
     h = sim.vehicle(0).true_start_pose[3]

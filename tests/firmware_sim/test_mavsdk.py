@@ -83,3 +83,60 @@ def test_mavsdk_arm_takeoff_offboard_land(port_block):
     finally:
         m.destroy()
         sim.stop()
+
+
+@pytest.mark.slow
+def test_mavsdk_mission(port_block):
+    from mavsdk.plugins.mission import Mission, MissionItem, MissionPlan
+
+    from firmware_sim.odometry import EARTH_RADIUS_M
+
+    world = build_world("small_house", seed=0)
+    sim = Simulation(world, 1, seed=7, speed=3.0, camera=None, mavlink_base_port=port_block)
+    sim.start()
+    m = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
+    try:
+        assert m.add_any_connection(f"udpin://127.0.0.1:{port_block}") == ConnectionResult.SUCCESS
+        system = m.first_autopilot(10.0)
+        telemetry, action, mission = Telemetry(system), Action(system), Mission(system)
+        poll(lambda: telemetry.health().is_armable, 15, "armable")
+        home = poll(lambda: (h := telemetry.home()) and math.isfinite(h.latitude_deg) and h, 5, "home")
+        coslat = math.cos(math.radians(home.latitude_deg))
+
+        def item(north: float, east: float) -> MissionItem:
+            lat = home.latitude_deg + math.degrees(north / EARTH_RADIUS_M)
+            lon = home.longitude_deg + math.degrees(east / (EARTH_RADIUS_M * coslat))
+            nan = float("nan")
+            return MissionItem(
+                lat,
+                lon,
+                1.3,
+                1.0,
+                True,
+                nan,
+                nan,
+                MissionItem.CameraAction.NONE,
+                nan,
+                nan,
+                0.3,
+                nan,
+                nan,
+                MissionItem.VehicleAction.NONE,
+            )
+
+        # Vehicle 0 starts at (3, 2.5) in the living room; world east is +x, north +y.
+        mission.set_return_to_launch_after_mission(False)
+        mission.upload_mission(MissionPlan([item(0.0, 1.5), item(1.0, 1.5), item(1.0, 0.5)]))
+        assert len(mission.download_mission().mission_items) == 3
+        action.arm()
+        mission.start_mission()
+        poll(lambda: mission.is_mission_finished(), 30, "mission finished")
+        p, _ = sim.true_pose(0)
+        x0, y0 = sim.vehicle(0).true_start_pose[:2]
+        np.testing.assert_allclose(p[:2], [x0 + 0.5, y0 + 1.0], atol=0.4)
+        assert abs(p[2] - 1.3 - sim.vehicle(0).true_start_pose[2]) < 0.3
+        action.land()
+        poll(lambda: not telemetry.armed(), 30, "landed and disarmed")
+    finally:
+        m.destroy()
+        sim.stop()

@@ -13,11 +13,18 @@ from coopd.camera import SocketDepthSource, SocketSourceConfig
 from coopd.mapping import Intrinsics, Mapper, MapperConfig, Pose
 from coopd.mapping.association import FrameAssociator
 from coopd.vehicle import LinkConfig, VehicleLink
+from firmware_sim.odometry import NOISE_PRESETS, NoiseConfig
 from firmware_sim.simulation import Simulation
 from firmware_sim.worlds import build_world
 
 WALL_SECONDS = float(os.environ.get("COOPD_E2E_SECONDS", "25"))
+# More cases for measurement runs, e.g. COOPD_E2E_CASES="maze:white,small_warehouse:default".
+CASES = [("small_house", "white"), ("small_house", "default")] + [
+    tuple(c.split(":")) for c in os.environ.get("COOPD_E2E_CASES", "").split(",") if ":" in c
+]
 SPEED = 2.0
+# The default preset without drift: white noise on every report only (drift makes the map itself drift).
+WHITE = NoiseConfig(drift_xy_m_s=0.0, drift_z_m_s=0.0, drift_yaw_rad_s=0.0)
 
 
 def warm_up_kernels():
@@ -31,8 +38,8 @@ def warm_up_kernels():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("world_name", ["small_house"])
-def test_route_maps_the_world(world_name, tmp_path, udp_port):
+@pytest.mark.parametrize("world_name, noise", CASES)
+def test_route_maps_the_world(world_name, noise, tmp_path, udp_port):
     warm_up_kernels()
     world = build_world(world_name, 0)
     sim = Simulation(
@@ -40,7 +47,7 @@ def test_route_maps_the_world(world_name, tmp_path, udp_port):
         1,
         seed=0,
         speed=SPEED,
-        noise="default",
+        noise=NOISE_PRESETS[noise] if noise != "white" else WHITE,
         mavlink_base_port=udp_port,
         camera_dir=str(tmp_path),
         route="builtin",
@@ -53,10 +60,12 @@ def test_route_maps_the_world(world_name, tmp_path, udp_port):
     cam.start()
     sim.start()
     integrate_s = []
+    lag_max = 0.0
     try:
         assert wait_until(lambda: not link.odometry_stale(), 5.0)
         t0 = time.monotonic()
         while time.monotonic() - t0 < WALL_SECONDS and not sim.route_finished(0):
+            lag_max = max(lag_max, sim.lag_s)
             frame = cam.slot.take(timeout=0.5)
             if frame is None:
                 continue
@@ -82,6 +91,7 @@ def test_route_maps_the_world(world_name, tmp_path, udp_port):
     pos_err, att_err = pose_errors(link, sim)
     report = {
         "world": world_name,
+        "noise": noise,
         "sim_seconds": round(sim.time, 1),
         "speed": SPEED,
         "frames_received": cam.counters["frames"],
@@ -92,6 +102,8 @@ def test_route_maps_the_world(world_name, tmp_path, udp_port):
         "pose_error_rms_m": round(float(np.sqrt(np.mean(pos_err**2))), 4),
         "pose_error_max_m": round(float(pos_err.max()), 4),
         "attitude_error_max_deg": round(float(att_err.max()), 3),
+        "sim_lag_max_s": round(lag_max, 3),
+        "clock_rate": round(link.clock.estimate().rate, 4),
         "clock_uncertainty_ms": round(1e3 * link.clock.estimate().uncertainty_s, 2),
         **{k: round(v, 4) if isinstance(v, float) else v for k, v in acc.items()},
     }
