@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from . import mtp, swarmkey
-from .mtp import Hello, MtpError, Reassembler, Transfer
+from .mtp import Hello, MtpError, Offer, Reassembler, Transfer
 from .peers import PeerTable
 
 log = logging.getLogger("coopd.sharing")
@@ -125,10 +125,13 @@ class MapServer:
     """Receives transfers: every connection in its own thread, every read timed, every buffer bounded."""
 
     def __init__(self, settings: TransportSettings, vehicle_id: int, accept: Callable[[Arrival], int],
-                 peers: PeerTable, host: str = "0.0.0.0", port: int = 0):
+                 peers: PeerTable, host: str = "0.0.0.0", port: int = 0,
+                 wants: Callable[[int, int], int] | None = None):
         self.settings = settings
         self.vehicle_id = vehicle_id
         self._accept = accept
+        self._wants = wants or (lambda origin, version: mtp.ACK_OK)
+        """Answer to a relay offer: ACK_OK (send it) or ACK_STALE (already held)."""
         self.peers = peers
         self._bind = (host, port)
         self._listener: socket.socket | None = None
@@ -321,6 +324,9 @@ class _Connection:
                 elif isinstance(ev, Transfer):
                     self._on_transfer(ev, time.monotonic() - t_start)
                     phase, deadline = "idle", time.monotonic() + s.idle_timeout
+                elif isinstance(ev, Offer):
+                    self._ack(0, self.server._wants(ev.origin, ev.version))
+                    phase, deadline = "idle", time.monotonic() + s.idle_timeout
 
     def _refuse_with_hello(self) -> None:
         """Tell a peer with another block size ours (so it fails clearly too), then close gently."""
@@ -457,6 +463,15 @@ class PeerLink:
         if got != blocks:
             raise MtpError("count", f"peer acknowledged {got} blocks, we sent {blocks}")
         return status, time.monotonic() - t0
+
+    def offer(self, origin: int, version: int) -> int:
+        """Ask whether the peer needs `origin`'s map at `version` (ACK_OK) or holds it (ACK_STALE)."""
+        self.sock.settimeout(self.s.read_timeout)
+        self.sock.sendall(mtp.offer_frame(origin, version, self.s.block_size))
+        blocks, status = mtp.parse_ack(self._recv_exact(self.s.block_size, self.s.read_timeout))
+        if blocks != 0:
+            raise MtpError("count", f"peer answered an offer with an ack for {blocks} blocks")
+        return status
 
     def closed_by_peer(self) -> bool:
         """True if the peer closed the connection (checked without blocking)."""
