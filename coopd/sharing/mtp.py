@@ -3,7 +3,8 @@
 Every frame is exactly BS bytes. A transfer is a start frame (0x80, 0, int32 block count),
 the serialized message cut into BS-byte data blocks (the last zero-padded), and a stop frame
 (0x80, 1, int32 block count). coopd extends the thesis with frames of its own that a thesis
-sender never emits: a connection hello (0x80, 2) and a transfer ack (0x80, 3); and it may put
+sender never emits: a connection hello (0x80, 2), a transfer ack (0x80, 3) and a relay offer
+(0x80, 4); and it may put
 an HMAC tag in the stop frame's spare bytes, which the thesis leaves zero and ignores.
 
 The Reassembler is a pure state machine over received bytes: it never allocates more than
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 
 MARK = 0x80
 """Byte 0 of every control frame (-128 as int8); never a cell value or a message type."""
-START, STOP, HELLO, ACK = 0, 1, 2, 3
+START, STOP, HELLO, ACK, OFFER = 0, 1, 2, 3, 4
 DEFAULT_BLOCK_SIZE = 4096
 MIN_BLOCK_SIZE = 64
 """Small enough for any sane link, large enough for the hello and a stop frame with a tag."""
@@ -29,6 +30,8 @@ HEAD = struct.Struct("<BBi")
 HELLO_BODY = struct.Struct("<BBi16sQ")
 """after HEAD (whose count is the sender's block size): protocol version, flags, vehicle id,
 nonce, instance id (random per process start: a changed one means the peer lost its state)."""
+OFFER_BODY = struct.Struct("<Q")
+"""after HEAD (whose count is the origin vehicle id): the map version offered."""
 HELLO_FLAG_KEY = 0x01
 TAG_HMAC_SHA256 = 0x01
 """Stop frame byte 6: a 32-byte HMAC-SHA256 tag follows in bytes 7-38."""
@@ -55,6 +58,14 @@ class Hello:
     keyed: bool
     instance: int = 0
     version: int = PROTOCOL_VERSION
+
+
+@dataclass(frozen=True)
+class Offer:
+    """coopd's relay offer: 'I could send you vehicle `origin`'s map at `version`; do you need it?'"""
+
+    origin: int
+    version: int
 
 
 @dataclass(frozen=True)
@@ -106,6 +117,11 @@ def hello_frame(hello: Hello) -> bytes:
 def ack_frame(blocks: int, status: int, block_size: int) -> bytes:
     """The receiver's verdict on the transfer of `blocks` blocks just received."""
     return _control(ACK, blocks, block_size, bytes([status]))
+
+
+def offer_frame(origin: int, version: int, block_size: int) -> bytes:
+    """Ask before relaying: the receiver answers with an ack (0 blocks): OK = send it, STALE = I have it."""
+    return _control(OFFER, origin, block_size, OFFER_BODY.pack(version))
 
 
 def block_count(size: int, block_size: int) -> int:
@@ -285,6 +301,9 @@ class Reassembler:
                 self._fail("count", f"stop frame ({count} blocks) without a start frame")
         elif kind == ACK:
             self._fail("frame", "ack frame sent to a receiver")
+        elif kind == OFFER:
+            if not self.saw_hello:
+                self._fail("frame", "offer frame without a hello")
         else:
             self._fail("frame", f"unknown control frame type {kind}")
         self._kind, self._count = kind, count
@@ -309,6 +328,11 @@ class Reassembler:
         if self._kind == HELLO:
             self.saw_hello = True
             return [parse_hello(self._frame)]
+        if self._kind == OFFER:
+            (version,) = OFFER_BODY.unpack_from(self._frame, HEAD.size)
+            if not _all_zero(memoryview(self._frame)[HEAD.size + OFFER_BODY.size:]):
+                self._fail("frame", "offer frame padding is not zero")
+            return [Offer(self._count, version)]
         # STOP
         ok, tag = _stop_tag(self._frame, self.block_size)
         if not ok:

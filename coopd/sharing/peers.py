@@ -29,6 +29,8 @@ class PeerStats:
     connected: bool = False
     maps_sent: int = 0
     bytes_sent: int = 0
+    offers_declined: int = 0
+    """Relay offers the peer declined because it already held the map (no transfer made)."""
     redundant_sent: int = 0
     """Transfers the peer answered 'stale' (it already held that version, e.g. from a relay)."""
     maps_received: int = 0
@@ -46,7 +48,7 @@ class PeerStats:
             "vehicle_id": self.vehicle_id, "address": self.address, "port": self.port,
             "last_seen_ago_s": round(now - self.last_seen, 3), "connected": self.connected,
             "maps_sent": self.maps_sent, "bytes_sent": self.bytes_sent,
-            "redundant_sent": self.redundant_sent,
+            "redundant_sent": self.redundant_sent, "offers_declined": self.offers_declined,
             "maps_received": self.maps_received, "bytes_received": self.bytes_received,
             "last_transfer_s": round(self.last_transfer_s, 6),
             "last_throughput_mbit_s": round(self.last_throughput_bps * 8 / 1e6, 3),
@@ -132,6 +134,10 @@ class PeerTable:
             peer = self._get(vehicle_id)
             peer.redundant_sent += int(redundant)
             self._note_has(peer, origin, version)
+
+    def offer_declined(self, vehicle_id: int) -> None:
+        with self._lock:
+            self._get(vehicle_id).offers_declined += 1
 
     @staticmethod
     def _note_has(peer: PeerStats, origin: int, version: int) -> None:

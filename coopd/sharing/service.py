@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from . import discovery, mtp, swarmkey
+from . import discovery, mtp
 from .peers import MessageSummary, PeerTable, ReceivedStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
@@ -39,35 +39,14 @@ class SharingConfig:
     """A peer not seen (and not connected) for this long is dropped from the table."""
     relay: bool = False
     """Also forward maps received from others (multi-hop); see docs/sharing.md."""
+    relay_delay: float = 1.0
+    """A received map is relayed only after this many seconds, so that peers in range of its
+    origin get it from the origin first and the relay is not wasted."""
     max_vehicles: int = 256
     """Received maps of at most this many vehicles are held."""
     max_received_bytes: int = 1 << 30
     """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
     transport: TransportSettings = field(default_factory=TransportSettings)
-
-
-_TRANSPORT_KEYS = {f for f in TransportSettings.__dataclass_fields__ if f != "swarm_key"}
-_CONFIG_KEYS = {"listen_host", "port", "peers", "peer_ports", "scan_period", "grace_period", "relay",
-                "max_vehicles", "max_received_bytes"}
-
-
-def config_from_table(vehicle_id: int, table: dict) -> SharingConfig:
-    """A SharingConfig from the [sharing] table of coopd.toml; unknown keys are an error.
-
-    `swarm_key` is a passphrase, 'hex:...' or empty (no key); `peers`/`peer_ports` are lists.
-    """
-    unknown = set(table) - _TRANSPORT_KEYS - _CONFIG_KEYS - {"swarm_key"}
-    if unknown:
-        raise ValueError(f"unknown [sharing] settings: {', '.join(sorted(unknown))}")
-    transport = {k: v for k, v in table.items() if k in _TRANSPORT_KEYS}
-    transport["swarm_key"] = swarmkey.load_key(table.get("swarm_key"))
-    fields = {k: v for k, v in table.items() if k in _CONFIG_KEYS}
-    for k in ("peers", "peer_ports"):
-        if k in fields:
-            fields[k] = tuple(fields[k])
-    config = SharingConfig(vehicle_id=vehicle_id, transport=TransportSettings(**transport), **fields)
-    discovery.parse_targets(config.peers, config.peer_ports)  # fail at load time, not at the first scan
-    return config
 
 
 def wire_inspect(data) -> MessageSummary:
@@ -106,7 +85,7 @@ class SharingService:
         """(vehicle id, version) of every stored map, for consumers that poll; oldest dropped if full."""
         self._targets = discovery.parse_targets(config.peers, config.peer_ports)
         self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
-                                 config.listen_host, config.port)
+                                 config.listen_host, config.port, self._wants)
         self._own: tuple[int, bytes] | None = None
         self._update = threading.Condition()
         self._stop = threading.Event()
@@ -165,9 +144,12 @@ class SharingService:
         if own is not None and own[0] > self.peers.has_version(peer_vid, self.vehicle_id):
             out.append((self.vehicle_id, own[0], own[1]))
         if self.config.relay:
+            settled = time.time() - self.config.relay_delay
             for m in self.received.all():
                 if m.vehicle_id in (peer_vid, self.vehicle_id) or m.via == peer_vid:
                     continue
+                if m.received_at > settled:
+                    continue  # picked up by a later wake-up of the sender loop
                 if m.version > self.peers.has_version(peer_vid, m.vehicle_id):
                     out.append((m.vehicle_id, m.version, m.data))
         return out
@@ -184,6 +166,12 @@ class SharingService:
         return wire.decode_map(stored.data, wire.DecodeLimits(max_cells=s.max_cells, max_bytes=s.max_bytes))
 
     # ------------------------------------------------------------------ receiving
+    def _wants(self, origin: int, version: int) -> int:
+        """Answer a relay offer: send it (ACK_OK) unless we hold that version or newer (ACK_STALE)."""
+        if origin == self.vehicle_id or 0 < version <= self.received.version(origin):
+            return mtp.ACK_STALE
+        return mtp.ACK_OK
+
     def _accept(self, arrival: Arrival) -> int:
         """Check a complete transfer, store it if newer; Rejected drops it (counted by the server)."""
         s = self.config.transport
@@ -265,7 +253,8 @@ class SharingService:
         found = 0
         source = None if self.config.listen_host in ("", "0.0.0.0") else self.config.listen_host
         for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
-            sender = _Sender(self, PeerLink(sock, self.config.transport, self.vehicle_id, target[0]), target)
+            link = PeerLink(sock, self.config.transport, self.vehicle_id, target[0], self._server.instance)
+            sender = _Sender(self, link, target)
             with self._lock:
                 if self._stop.is_set():
                     sock.close()
@@ -378,6 +367,10 @@ class _Sender:
             for origin, version, message in svc.pending_for(self.vid):
                 if svc._stop.is_set():
                     return
+                if origin != svc.vehicle_id and self.link.offer(origin, version) == mtp.ACK_STALE:
+                    svc.peers.peer_has(self.vid, origin, version)  # relay declined: it has it already
+                    svc.peers.offer_declined(self.vid)
+                    continue
                 status, seconds = self.link.send_map(message)
                 if status == mtp.ACK_OK:
                     svc.peers.sent(self.vid, origin, version, len(message), seconds)

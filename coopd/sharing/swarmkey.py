@@ -20,6 +20,8 @@ def load_key(value: str | bytes | None) -> bytes | None:
         return None
     if isinstance(value, bytes):
         key = value
+        if not key:
+            return None
     elif value.startswith("hex:"):
         key = bytes.fromhex(value[4:])
     else:
@@ -27,6 +29,22 @@ def load_key(value: str | bytes | None) -> bytes | None:
     if len(key) < 16:
         raise ValueError(f"swarm key must have at least 16 bytes, got {len(key)}")
     return key
+
+
+MAX_KEY_FILE_BYTES = 4096
+
+
+def read_key_file(path) -> bytes | None:
+    """The swarm key from a file (the daemon's swarm_key_file): its bytes without surrounding
+    whitespace; 'hex:...' content is decoded. None for an empty path."""
+    if not path:
+        return None
+    with open(path, "rb") as f:
+        data = f.read(MAX_KEY_FILE_BYTES + 1)
+    if len(data) > MAX_KEY_FILE_BYTES:
+        raise ValueError(f"swarm key file {path} is larger than {MAX_KEY_FILE_BYTES} bytes")
+    data = data.strip()
+    return load_key(data.decode("ascii") if data.startswith(b"hex:") else data)
 
 
 def transfer_tag(key: bytes, receiver_nonce: bytes, sender_nonce: bytes, seq: int, blocks: int,

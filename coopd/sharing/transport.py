@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from . import mtp, swarmkey
-from .mtp import Hello, MtpError, Reassembler, Transfer
+from .mtp import Hello, MtpError, Offer, Reassembler, Transfer
 from .peers import PeerTable
 
 log = logging.getLogger("coopd.sharing")
@@ -51,6 +51,16 @@ class TransportSettings:
 
     def __post_init__(self):
         mtp.check_block_size(self.block_size)
+        for name in ("connect_timeout", "read_timeout", "handshake_timeout", "idle_timeout",
+                     "transfer_base_s", "min_rate"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("max_connections", "max_connections_per_address", "max_bytes", "max_cells",
+                     "max_inflight_bytes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.max_send_rate < 0:
+            raise ValueError(f"max_send_rate must be >= 0, got {self.max_send_rate}")
         if self.swarm_key is not None and len(self.swarm_key) < 16:
             raise ValueError("swarm key must have at least 16 bytes")
 
@@ -115,10 +125,13 @@ class MapServer:
     """Receives transfers: every connection in its own thread, every read timed, every buffer bounded."""
 
     def __init__(self, settings: TransportSettings, vehicle_id: int, accept: Callable[[Arrival], int],
-                 peers: PeerTable, host: str = "0.0.0.0", port: int = 0):
+                 peers: PeerTable, host: str = "0.0.0.0", port: int = 0,
+                 wants: Callable[[int, int], int] | None = None):
         self.settings = settings
         self.vehicle_id = vehicle_id
         self._accept = accept
+        self._wants = wants or (lambda origin, version: mtp.ACK_OK)
+        """Answer to a relay offer: ACK_OK (send it) or ACK_STALE (already held)."""
         self.peers = peers
         self._bind = (host, port)
         self._listener: socket.socket | None = None
@@ -311,6 +324,9 @@ class _Connection:
                 elif isinstance(ev, Transfer):
                     self._on_transfer(ev, time.monotonic() - t_start)
                     phase, deadline = "idle", time.monotonic() + s.idle_timeout
+                elif isinstance(ev, Offer):
+                    self._ack(0, self.server._wants(ev.origin, ev.version))
+                    phase, deadline = "idle", time.monotonic() + s.idle_timeout
 
     def _refuse_with_hello(self) -> None:
         """Tell a peer with another block size ours (so it fails clearly too), then close gently."""
@@ -368,7 +384,9 @@ class _Connection:
 class PeerLink:
     """Our side of a connection to a peer's map server: hello exchange, then transfers with acks."""
 
-    def __init__(self, sock: socket.socket, settings: TransportSettings, vehicle_id: int, address: str = ""):
+    def __init__(self, sock: socket.socket, settings: TransportSettings, vehicle_id: int, address: str = "",
+                 instance: int = 0):
+        self.instance = instance
         self.sock = sock
         self.s = settings
         self.vehicle_id = vehicle_id
@@ -397,7 +415,7 @@ class PeerLink:
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         _keepalive(self.sock)
         self.sock.sendall(mtp.hello_frame(Hello(s.block_size, self.vehicle_id, self.nonce,
-                                                s.swarm_key is not None)))
+                                                s.swarm_key is not None, self.instance)))
         head = self._recv_exact(mtp.HEAD.size, s.handshake_timeout)
         marker, kind, bs = mtp.HEAD.unpack(head)
         if marker != mtp.MARK or kind != mtp.HELLO:
@@ -445,6 +463,15 @@ class PeerLink:
         if got != blocks:
             raise MtpError("count", f"peer acknowledged {got} blocks, we sent {blocks}")
         return status, time.monotonic() - t0
+
+    def offer(self, origin: int, version: int) -> int:
+        """Ask whether the peer needs `origin`'s map at `version` (ACK_OK) or holds it (ACK_STALE)."""
+        self.sock.settimeout(self.s.read_timeout)
+        self.sock.sendall(mtp.offer_frame(origin, version, self.s.block_size))
+        blocks, status = mtp.parse_ack(self._recv_exact(self.s.block_size, self.s.read_timeout))
+        if blocks != 0:
+            raise MtpError("count", f"peer answered an offer with an ack for {blocks} blocks")
+        return status
 
     def closed_by_peer(self) -> bool:
         """True if the peer closed the connection (checked without blocking)."""

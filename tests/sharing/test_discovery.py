@@ -79,20 +79,13 @@ def test_peer_is_its_vehicle_id_across_addresses_and_dropped_after_grace():
         a.stop()
 
 
-def test_config_from_the_sharing_table():
-    from coopd.sharing.service import config_from_table
+def test_transport_settings_are_validated():
+    from coopd.sharing.transport import TransportSettings
 
-    cfg = config_from_table(3, {"peers": ["10.42.0.1-10.42.0.20"], "peer_ports": [7400, 7401],
-                                "block_size": 8192, "swarm_key": "hex:" + "11" * 16, "relay": True,
-                                "read_timeout": 2.5})
-    assert cfg.vehicle_id == 3 and cfg.peers == ("10.42.0.1-10.42.0.20",) and cfg.relay
-    assert cfg.transport.block_size == 8192 and cfg.transport.swarm_key == b"\x11" * 16
-    assert cfg.transport.read_timeout == 2.5
-    assert config_from_table(1, {}).transport.swarm_key is None
-    for bad in ({"blok_size": 1}, {"block_size": 10}, {"peers": ["10.0.0.9-10.0.0.1"]},
-                {"swarm_key": "short"}):
+    for bad in ({"block_size": 10}, {"min_rate": 0}, {"read_timeout": -1}, {"max_connections": 0},
+                {"swarm_key": b"short"}, {"max_send_rate": -1}):
         with pytest.raises(ValueError):
-            config_from_table(1, bad)
+            TransportSettings(**bad)
 
 
 def test_failed_handshakes_back_off_instead_of_retrying_every_scan():

@@ -184,3 +184,17 @@ def test_block_size_setting_is_checked():
     for bad in (0, 10, mtp.MAX_BLOCK_SIZE + 1):
         with pytest.raises(ValueError):
             Reassembler(bad)
+
+
+def test_offer_frame_needs_a_hello_and_round_trips():
+    offer = mtp.offer_frame(origin=7, version=2**40 + 3, block_size=BS)
+    assert offer[:2] == b"\x80\x04" and struct.unpack_from("<iQ", offer, 2) == (7, 2**40 + 3)
+    with pytest.raises(MtpError):
+        Reassembler(BS).feed(offer)  # a thesis-format connection never offers
+    r = Reassembler(BS)
+    r.feed(mtp.hello_frame(Hello(BS, 1, b"n" * 16, False)))
+    assert r.feed(offer) == [mtp.Offer(7, 2**40 + 3)]
+    bad = bytearray(offer)
+    bad[-1] = 1
+    with pytest.raises(MtpError):
+        r.feed(bytes(bad))

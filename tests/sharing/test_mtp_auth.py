@@ -49,11 +49,20 @@ def test_replay_under_another_sequence_number_is_refused():
     assert accepted(raw, seq=0) and not accepted(raw, seq=1)
 
 
-def test_key_loading():
+def test_key_loading(tmp_path):
     assert swarmkey.load_key("") is None and swarmkey.load_key(None) is None
     assert swarmkey.load_key("hex:" + "ab" * 16) == b"\xab" * 16
     with pytest.raises(ValueError):
         swarmkey.load_key("short")
+    f = tmp_path / "swarm.key"
+    f.write_bytes(b"  correct horse battery staple\n")
+    assert swarmkey.read_key_file(f) == b"correct horse battery staple"
+    f.write_bytes(b"hex:" + b"0f" * 20 + b"\n")
+    assert swarmkey.read_key_file(f) == b"\x0f" * 20
+    assert swarmkey.read_key_file("") is None
+    f.write_bytes(b"x" * 5000)
+    with pytest.raises(ValueError):
+        swarmkey.read_key_file(f)
 
 
 def test_peer_restart_resets_what_it_holds():
