@@ -56,6 +56,7 @@ FRAME_FILE = "map-frame.json"
 daemon continues the same map frame (the first odometry sample after a restart is elsewhere)."""
 MAIN_PERIOD_S = 0.2
 STATUS_PERIOD_S = 5.0
+LOG_PERIOD_S = 60.0
 PUBLISH_PERIOD_S = 1.0
 HEALTH_MAX_AGE_S = 3.0
 """The main loop and the mapping thread must have looped within this time for WATCHDOG=1."""
@@ -176,6 +177,7 @@ class Daemon:
         self.mapper = self._make_mapper()
         self.latency_s: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self.frames_mapped = 0
+        self.mapping_errors = 0
         self.sharing = (
             SharingService(
                 sharing_config(config, self.budget),
@@ -221,6 +223,7 @@ class Daemon:
         self._origin_saved = self.link.odometry.origin_enu is not None
         self._next_checkpoint = time.monotonic() + (config.daemon.checkpoint_period_s or float("inf"))
         self._next_status = 0.0
+        self._next_log = time.monotonic() + LOG_PERIOD_S
 
     # ------------------------------------------------------------------------------ building
     def _make_camera(self):
@@ -397,6 +400,9 @@ class Daemon:
             if now >= self._next_status:
                 self._next_status = now + STATUS_PERIOD_S
                 self.notifier.status(self.summary())
+            if now >= self._next_log:
+                self._next_log = now + LOG_PERIOD_S
+                log.info("%s", status_report.log_line(self))
             self._stop.wait(MAIN_PERIOD_S)
 
     def shutdown(self) -> None:
@@ -441,6 +447,11 @@ class Daemon:
                 )
             except FrameRejected:
                 continue  # counted by the Mapper
+            except Exception:  # a bug on one frame must not end mapping; counted, shown in status
+                self.mapping_errors += 1
+                if self.mapping_errors <= 3 or self.mapping_errors % 100 == 0:
+                    log.exception("mapping error on frame %d (%d so far)", frame.seq, self.mapping_errors)
+                continue
             self.frames_mapped += 1
             self.latency_s.append(time.monotonic() - frame.received_local)
 

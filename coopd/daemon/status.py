@@ -54,6 +54,7 @@ def build(daemon) -> dict:
             "latency_ms": _percentiles(lat),
             "skipped": assoc["skipped"],
             "rejected": dict(mapper.totals.reject_reasons),
+            "errors": daemon.mapping_errors,
         },
         "frames": {
             "in": cam_counters.get("frames", 0),
@@ -175,6 +176,16 @@ def summary(daemon) -> str:
     return (
         f"{daemon.state}: link {link}, {daemon.frames_mapped} frames mapped{paused}, "
         f"map v{daemon.mapper.version} {'x'.join(map(str, grid.shape))}, {n_peers} peers, {merges}"
+    )
+
+
+def log_line(daemon) -> str:
+    """The periodic operator log line: the STATUS summary plus latency, drops and memory."""
+    lat = _percentiles(np.array(daemon.latency_s, dtype=np.float64))
+    return (
+        f"{summary(daemon)}; latency p50 {lat['p50']} ms p99 {lat['p99']} ms over {lat['n']} frames, "
+        f"{daemon.slot.dropped} frames dropped, {daemon.mapper.grid.counts().known} known cells, "
+        f"RSS {daemon.budget.rss() / 2**20:.0f} of {daemon.budget.budget_bytes / 2**20:.0f} MiB"
     )
 
 
