@@ -26,10 +26,10 @@ from coopd.sharing.wire import DEFAULT_LIMITS, DecodeLimits, MapMeta, decode_map
 log = logging.getLogger("coopd.daemon")
 
 NOT_AVAILABLE = "merging: not available in this build"
-SCRATCH_BYTES_PER_CELL = 8
-"""Merge scratch budgeted per input cell (local + received): the decoded int8 maps, the growing
-global map, float working copies of preprocessing and features; checked against the peak RSS of
-`scripts/bench daemon`."""
+SCRATCH_BYTES_PER_CELL = 12
+"""Merge scratch budgeted per input cell (local + received): the local snapshot and decoded
+received maps (1 B each) plus merge_all's own peak, measured with tracemalloc at 5.7-8.5 B per
+input cell (global map copy, preprocessing, features) on small_house maps of 0.8-2.6 M cells."""
 
 
 def find_merge_all() -> Callable | None:
