@@ -44,7 +44,7 @@ from coopd.sharing.peers import MessageSummary
 from coopd.sharing.service import SharingConfig as ServiceSharingConfig
 from coopd.sharing.service import SharingService, wire_verifier
 from coopd.sharing.transport import TransportSettings
-from coopd.sharing.wire import DecodeLimits, MapMeta, encode_map
+from coopd.sharing.wire import DecodeLimits, MapMeta, decode_map, encode_map
 from coopd.vehicle import LinkConfig, VehicleLink
 
 from . import status as status_report
@@ -166,6 +166,9 @@ class Daemon:
         self.started = time.monotonic()
         self.state = "starting"
         self.notifier = notifier if notifier is not None else DaemonNotifier()
+        self.merge_fn = find_merge_all() if merge_fn is FROM_BUILD else merge_fn
+        self.notifier.extend_timeout(120)
+        self._warm_up()  # first: the kernels' memory then belongs to the budget's baseline
         self.budget = MemoryBudget.from_mb(config.daemon.memory_mb)
         self.priorities = ThreadPriorities()
         self.state_dir = Path(config.daemon.state_dir)
@@ -194,7 +197,7 @@ class Daemon:
             self.budget,
             config.merging.period_s,
             enabled=config.merging.enabled,
-            merge_fn=find_merge_all() if merge_fn is FROM_BUILD else merge_fn,
+            merge_fn=self.merge_fn,
             limits=DecodeLimits(config.sharing.max_map_cells, config.sharing.max_map_bytes),
             min_gap_s=min(config.merging.period_s, MERGE_MIN_GAP_S),
         )
@@ -318,8 +321,6 @@ class Daemon:
     # ----------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
         """Warm the kernels, resume received maps, start every thread, then READY=1."""
-        self.notifier.extend_timeout(90)
-        self._warm_up()
         self._remove_stray_temp_files()
         try:
             self.control.start()
@@ -365,14 +366,25 @@ class Daemon:
         self._threads.append(t)
 
     def _warm_up(self) -> None:
-        """Load (or compile) the mapping kernels before the first frame counts against latency."""
+        """Load (or compile) the mapping, codec and merging kernels before the budget measures its
+        baseline and before the first frame counts against latency."""
         t0 = time.monotonic()
         m = Mapper(replace(self.config.mapping, threads=1))
         intr = Intrinsics.from_fov(32, 24, 87.0)
         forward = Pose(np.zeros(3), np.array([0.5, -0.5, 0.5, -0.5]))
         m.integrate(np.full((24, 32), 2000, np.uint16), intr, forward)
         m.close()
-        encode_map(m.grid, MapMeta(self.vehicle_id, 1))
+        grid = decode_map(encode_map(m.grid, MapMeta(self.vehicle_id, 1)))[0]
+        grid.counts()
+        if self.merge_fn is not None:
+            room = OccupancyGrid.empty((40, 40, 12), self.config.mapping.resolution)
+            room.cells[5:35, 5:35, 2] = 0
+            room.cells[5:35, (5, 34), 2:10] = 90
+            room.cells[(5, 34), 5:35, 2:10] = 90
+            try:
+                self.merge_fn(room, [room.copy()], None)
+            except Exception as e:  # the merging thread will report the same failure on real maps
+                log.warning("merging warm-up failed: %s: %s", type(e).__name__, e)
         log.info("kernels ready in %.1f s", time.monotonic() - t0)
 
     def _remove_stray_temp_files(self) -> None:
