@@ -181,6 +181,11 @@ def test_two_daemons_share_their_maps():
         assert statuses, [d.status() for d in daemons]
         for i, d in enumerate(daemons):
             other = 2 - i
+            # each vehicle's own map against the ground truth: the frames used for the true offset hold
+            _, blob = d.request("dump-map", {"map": "local"}, max_blob_bytes=1 << 26)
+            acc = sim.accuracy(decode_map(blob)[0], i, statuses[i]["link"]["map_origin_fc_enu"])
+            report[f"vehicle {i + 1} map vs truth"] = {k: round(acc[k], 3) for k in ("precision", "recall")}
+            assert acc["precision"] >= 0.8, report
             result, blob = d.request("dump-map", {"map": "peer", "vehicle_id": other}, max_blob_bytes=1 << 26)
             grid, meta = decode_map(blob)
             assert meta.vehicle_id == other and meta.version >= 1 and grid.counts().known > 0
