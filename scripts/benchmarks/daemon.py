@@ -119,6 +119,7 @@ def main():
         received = SimpleNamespace(vehicle_id=2, version=version,
                                    data=encode_map(grid.shrunk(), MapMeta(2, version)))
         daemon.merger.received_maps = lambda: [received]
+        daemon.merger.min_gap_s = 0.0  # back to back, the worst case for mapping
         merging = phase(daemon, args.seconds, merging=True)
         status = daemon.handle_status({})
     finally:
