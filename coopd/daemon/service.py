@@ -61,6 +61,8 @@ PUBLISH_PERIOD_S = 1.0
 HEALTH_MAX_AGE_S = 3.0
 """The main loop and the mapping thread must have looped within this time for WATCHDOG=1."""
 LATENCY_WINDOW = 2000
+SNAPSHOT_PAD_CELLS = 4
+"""Unknown cells kept around the known box of a snapshot (room for the merge's filters)."""
 MERGE_NOW_TIMEOUT_S = 100.0
 MERGE_MIN_GAP_S = 5.0
 """Maps arriving faster than this (peers publish every second) are merged together, not one by one."""
@@ -192,7 +194,7 @@ class Daemon:
         )
         self.merger = Merger(
             self.vehicle_id,
-            self.mapper.snapshot,
+            self.known_snapshot,
             self._received_maps,
             self.budget,
             config.merging.period_s,
@@ -513,14 +515,21 @@ class Daemon:
     def _received_maps(self) -> list:
         return [] if self.sharing is None else self.sharing.received.all()
 
+    def known_snapshot(self) -> tuple[OccupancyGrid, int]:
+        """A copy of the local map cropped to its known cells (same keys, so the same frame) and its
+        version. The grid grows by whole steps on both sides and is mostly unknown (a 40 m corridor:
+        32 M cells, 4 M of them known); only the known box is copied, under the mapping lock."""
+        with self.mapper.lock:
+            return self.mapper.grid.shrunk(pad=SNAPSHOT_PAD_CELLS), self.mapper.version
+
     def local_message(self) -> tuple[int, bytes]:
         """(version, encoded local map), encoded again only when the map changed."""
         with self._message_lock:
             cached = self._local_message
             if cached is not None and cached[0] == self.mapper.version:
                 return cached
-            grid, version = self.mapper.snapshot()
-            message = encode_map(grid.shrunk(), MapMeta(self.vehicle_id, version, time.time()))
+            grid, version = self.known_snapshot()
+            message = encode_map(grid, MapMeta(self.vehicle_id, version, time.time()))
             self._local_message = (version, message)
             return self._local_message
 

@@ -115,9 +115,8 @@ def main():
             time.sleep(0.2)
         time.sleep(args.warmup)
         idle = phase(daemon, args.seconds, merging=False)
-        grid, version = daemon.mapper.snapshot()
-        received = SimpleNamespace(vehicle_id=2, version=version,
-                                   data=encode_map(grid.shrunk(), MapMeta(2, version)))
+        grid, version = daemon.known_snapshot()
+        received = SimpleNamespace(vehicle_id=2, version=version, data=encode_map(grid, MapMeta(2, version)))
         daemon.merger.received_maps = lambda: [received]
         daemon.merger.min_gap_s = 0.0  # back to back, the worst case for mapping
         merging = phase(daemon, args.seconds, merging=True)
@@ -136,7 +135,7 @@ def main():
                        "load_avg_1min": os.getloadavg()[0], "memory_budget_mib": args.memory_mb,
                        "merge_fn": "coopd.merging.merge_all" if daemon.merger.available else None,
                        "received_map": f"this flight's local map as vehicle 2, {len(received.data)} bytes, "
-                                       f"{'x'.join(map(str, grid.shrunk().shape))} cells"},
+                                       f"{'x'.join(map(str, grid.shape))} cells"},
         "idle": idle,
         "merging": merging,
         "map": status["map"],
