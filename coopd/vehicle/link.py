@@ -90,6 +90,7 @@ class VehicleLink:
         self.target_system = config.target_system
         self.state = "connecting"
         self.native_id: int | None = None
+        self.max_step_s = 0.0  # longest loop iteration: shows the thread never stalls
         self._last_heartbeat = -math.inf
         self._last_rx = -math.inf
         self._last_odometry = -math.inf
@@ -129,13 +130,15 @@ class VehicleLink:
             self.config.source_component,
         )
         while not self._stop.is_set():
+            t0 = time.monotonic()
             try:
-                self.step(time.monotonic())
+                self.step(t0)
             except Exception:  # a bug in a handler must not take the link down: count and log once a while
                 self.counters["loop_errors"] += 1
                 if self.counters["loop_errors"] <= 3:
                     log.exception("MAVLink link loop error (continuing)")
                 self._stop.wait(0.05)
+            self.max_step_s = max(self.max_step_s, time.monotonic() - t0)
 
     def step(self, now: float) -> None:
         """One iteration: (re)open if needed, read what arrived within READ_TIMEOUT_S, run timers."""
@@ -396,5 +399,6 @@ class VehicleLink:
                 "source": est.source,
             },
             "thread_native_id": self.native_id,
+            "max_loop_s": round(self.max_step_s, 4),
             "counters": counters,
         }
