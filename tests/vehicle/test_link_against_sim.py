@@ -199,3 +199,23 @@ def test_hostile_udp_input_is_counted_and_never_stops_the_link(rig):
     assert st["max_loop_s"] < 0.25, st["max_loop_s"]  # reads are bounded: the flood never stalls the loop
     assert np.all(np.isfinite(link.poses.latest().position))
     assert link.transport.peer[1] == sim.vehicle(0).link.bound_port  # replies still go to the FC
+
+
+def test_each_link_follows_its_own_vehicle(world, udp_port):
+    """Two vehicles, two links: each locks onto its own system id and its own start frame."""
+    sim = Simulation(world, 2, seed=5, speed=4.0, noise=NOISE, camera=None, mavlink_base_port=udp_port)
+    links = [VehicleLink(LinkConfig(connection=f"udpin:127.0.0.1:{udp_port + i}")) for i in range(2)]
+    for lk in links:
+        lk.start()
+    sim.start()
+    try:
+        assert wait_until(lambda: all(not lk.odometry_stale() for lk in links), 5.0)
+        assert wait_until(lambda: all(len(lk.poses) > 30 for lk in links), 5.0)
+        for i, lk in enumerate(links):
+            assert lk.target_system == i + 1
+            pos_err, _ = pose_errors(lk, sim, i)
+            assert len(pos_err) > 30 and pos_err.max() < 0.1
+    finally:
+        for lk in links:
+            lk.stop()
+        sim.stop()
