@@ -163,6 +163,8 @@ class FlightController:
         """Descend where the vehicle is and disarm on touchdown."""
         if not self.armed:
             return 2
+        if self.last_state is not None:  # land where it is now, not at an older hold point
+            self.hold = Setpoint(pos=self.last_state.pos.copy(), yaw=self.yaw_sp)
         self._set_mode(MAIN_AUTO, SUB_LAND, t)
         self.slow_since = None
         return 0

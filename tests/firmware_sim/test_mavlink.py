@@ -200,3 +200,39 @@ def test_mission_upload_start_and_reached(sim_and_client):
     start = np.array(sim.vehicle(0).true_start_pose[:2])
     np.testing.assert_allclose(p[:2], start + [1.2, 1.0], atol=0.35)  # estimate drift + acceptance radius
     assert p[2] < 0.1
+
+
+def test_reposition_and_return_to_launch(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    home = c0.wait("HOME_POSITION")
+    lat0, lon0, alt0 = home.latitude * 1e-7, home.longitude * 1e-7, home.altitude * 1e-3
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt0 + 1.2) == 0
+    assert c0.wait("LOCAL_POSITION_NED", lambda m: m.z < -1.1, timeout=10) is not None
+    start = np.array(sim.vehicle(0).true_start_pose[:2])
+    lat = int(round((lat0 + math.degrees(1.0 / EARTH_RADIUS_M)) * 1e7))  # 1 m north = world +y
+    c0.drain()
+    c0.mav.command_int_send(
+        1,
+        1,
+        mav.MAV_FRAME_GLOBAL,
+        mav.MAV_CMD_DO_REPOSITION,
+        0,
+        0,
+        -1,
+        0,
+        0,
+        math.nan,
+        lat,
+        int(round(lon0 * 1e7)),
+        alt0 + 1.2,
+    )
+    ack = c0.wait("COMMAND_ACK", lambda m: m.command == mav.MAV_CMD_DO_REPOSITION)
+    assert ack is not None and ack.result == 0
+    deadline = time.monotonic() + 8
+    while time.monotonic() < deadline and np.linalg.norm(sim.true_pose(0)[0][:2] - start - [0, 1]) > 0.1:
+        time.sleep(0.1)
+    np.testing.assert_allclose(sim.true_pose(0)[0][:2], start + [0.0, 1.0], atol=0.15)
+    assert c0.command(mav.MAV_CMD_NAV_RETURN_TO_LAUNCH) == 0
+    assert c0.wait("HEARTBEAT", lambda m: not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED, 20) is not None
+    np.testing.assert_allclose(sim.true_pose(0)[0][:2], start, atol=0.35)
