@@ -236,3 +236,30 @@ def test_reposition_and_return_to_launch(sim_and_client):
     assert c0.command(mav.MAV_CMD_NAV_RETURN_TO_LAUNCH) == 0
     assert c0.wait("HEARTBEAT", lambda m: not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED, 20) is not None
     np.testing.assert_allclose(sim.true_pose(0)[0][:2], start, atol=0.35)
+
+
+def test_offboard_body_velocity_with_unset_vertical(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.command(mav.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7) == 0
+    assert c0.wait("LOCAL_POSITION_NED", lambda m: m.z < -2.3, timeout=10) is not None
+    z0 = sim.true_pose(0)[0][2]
+    start = sim.true_pose(0)[0][:2].copy()
+    ignore_all_but_vxy = 0b0000_1101_1110_0111  # vx, vy used; vz, position, accel, yaw rate ignored
+    deadline, acks = time.monotonic() + 4, []
+    sent_mode = False
+    while time.monotonic() < deadline:
+        c0.mav.set_position_target_local_ned_send(
+            0, 1, 1, mav.MAV_FRAME_BODY_NED, ignore_all_but_vxy, 0, 0, 0, 0.5, 0.0, math.nan, 0, 0, 0, 0.0, 0
+        )
+        if not sent_mode:
+            c0.mav.command_long_send(1, 1, mav.MAV_CMD_DO_SET_MODE, 0, 1, MAIN_OFFBOARD, 0, 0, 0, 0, 0)
+            sent_mode = True
+        acks += [m.result for m in c0.drain() if m.get_type() == "COMMAND_ACK"]
+        time.sleep(0.05)
+    assert acks == [0]
+    p = sim.true_pose(0)[0]
+    h = sim.vehicle(0).true_start_pose[3]
+    moved = p[:2] - start
+    assert moved @ [math.cos(h), math.sin(h)] > 2.0  # forward at 0.5 m/s for ~16 simulated seconds
+    assert abs(p[2] - z0) < 0.3  # unset vertical velocity: altitude held, not dropped
