@@ -58,6 +58,11 @@ def test_identity_and_streams(sim_and_client):
     assert REQUIRED_STREAMS <= seen
     m = c0.wait("ATTITUDE")
     assert abs(m.time_boot_ms / 1000 - sim.time) < 0.5  # one simulated clock
+    assert abs(m.yaw) < 0.05 and abs(m.roll) < 0.05 and abs(m.pitch) < 0.05  # start frame: heading = x
+    q = c0.wait("ATTITUDE_QUATERNION")
+    assert q.q1 > 0.99
+    hb = c0.wait("EXTENDED_SYS_STATE")
+    assert hb.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
     odo = c0.wait("ODOMETRY")
     assert odo.frame_id == mav.MAV_FRAME_LOCAL_NED and odo.child_frame_id == mav.MAV_FRAME_BODY_FRD
     assert math.hypot(odo.x, odo.y) < 0.1  # reported frame starts at the start pose
