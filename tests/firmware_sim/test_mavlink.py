@@ -268,3 +268,43 @@ def test_offboard_body_velocity_with_unset_vertical(sim_and_client):
     moved = p[:2] - start
     assert moved @ [math.cos(h), math.sin(h)] > 2.0  # forward at 0.5 m/s for ~16 simulated seconds
     assert abs(p[2] - z0) < 0.3  # unset vertical velocity: altitude held, not dropped
+
+
+def test_legacy_float_mission_in_local_ned(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    items = [  # (command, x, y, z) in the vehicle's local NED frame: x = initial heading, z down
+        (mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, -1.0),
+        (mav.MAV_CMD_NAV_WAYPOINT, 1.0, 0.0, -1.0),
+        (mav.MAV_CMD_NAV_WAYPOINT, 1.0, 0.5, -1.2),
+        (mav.MAV_CMD_NAV_LAND, 1.0, 0.5, 0.0),
+    ]
+    c0.drain()
+    c0.mav.mission_count_send(1, 1, len(items), 0)
+    deadline = time.monotonic() + 10
+    ack = None
+    while ack is None and time.monotonic() < deadline:
+        m = c0.conn.recv_match(type=["MISSION_REQUEST_INT", "MISSION_ACK"], blocking=True, timeout=0.5)
+        if m is None:
+            continue
+        if m.get_type() == "MISSION_ACK":
+            ack = m
+            break
+        cmd, x, y, z = items[m.seq]
+        c0.mav.mission_item_send(
+            1, 1, m.seq, mav.MAV_FRAME_LOCAL_NED, cmd, 0, 1, 0, 0, 0, math.nan, x, y, z, 0
+        )
+    assert ack is not None and ack.type == mav.MAV_MISSION_ACCEPTED
+    # Download it back: the same items (MISSION_ITEM_INT carries local x, y in 1e-4 m).
+    c0.mav.mission_request_list_send(1, 1, 0)
+    assert c0.wait("MISSION_COUNT").count == 4
+    c0.mav.mission_request_int_send(1, 1, 2, 0)
+    it = c0.wait("MISSION_ITEM_INT", lambda m: m.seq == 2)
+    assert (it.x, it.y, it.z, it.frame) == (10000, 5000, pytest.approx(-1.2), mav.MAV_FRAME_LOCAL_NED)
+    c0.mav.mission_ack_send(1, 1, mav.MAV_MISSION_ACCEPTED, 0)
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.set_mode(4, 4) == 0  # AUTO.MISSION by mode switch, as QGroundControl does
+    assert c0.wait("HEARTBEAT", lambda m: not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED, 25) is not None
+    h = sim.vehicle(0).true_start_pose[3]
+    fwd, right = np.array([math.cos(h), math.sin(h)]), np.array([math.sin(h), -math.cos(h)])
+    d = sim.true_pose(0)[0][:2] - np.array(sim.vehicle(0).true_start_pose[:2])
+    assert abs(d @ fwd - 1.0) < 0.35 and abs(d @ right - 0.5) < 0.35
