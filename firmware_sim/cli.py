@@ -149,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         "sim_time_s": round(sim.time, 3),
         "wall_s": round(wall, 3),
         "real_time_factor": round(sim.time / wall, 3) if wall > 0 else None,
+        "pacing_resets": sim.lag_resets,
         "mavlink": [dict(v.link.stats) if v.link else {} for v in sim.vehicles],
         "camera_frames_dropped": [v.publisher.frames_dropped if v.publisher else 0 for v in sim.vehicles],
     }
