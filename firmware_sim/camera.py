@@ -69,6 +69,7 @@ class DepthCamera:
     """Renders one vehicle's depth image from the current MuJoCo state."""
 
     def __init__(self, model: mujoco.MjModel, body_id: int, cfg: CameraConfig, rng: np.random.Generator):
+        """Precompute the rays in body coordinates and the output buffers."""
         cfg.validate()
         self.model, self.body_id, self.cfg, self.rng = model, body_id, cfg, rng
         self.rays_cam = optical_rays(cfg) @ body_from_camera(cfg).T  # rays in body FLU

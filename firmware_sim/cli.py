@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
+import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 
@@ -36,7 +40,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="odometry frame: each vehicle's start pose (default) or the shared world frame",
     )
     p.add_argument("--mavlink-port", type=int, default=14540, help="vehicle i sends to 127.0.0.1:PORT+i")
-    p.add_argument("--camera-dir", default=None, help="directory for camera<i>.sock Unix sockets")
+    p.add_argument(
+        "--camera-dir",
+        default=None,
+        help="directory for camera<i>.sock Unix sockets (default: a fresh temporary directory)",
+    )
     p.add_argument(
         "--camera-tcp-port", type=int, default=None, help="also serve camera i on 127.0.0.1:PORT+i"
     )
@@ -47,6 +55,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--camera-range", default="0.2:5.0", help="MIN:MAX metres")
     p.add_argument("--camera-noise", type=float, default=0.0, help="range sigma at 1 m (grows with z^2)")
     p.add_argument("--camera-dropout", type=float, default=0.0)
+    p.add_argument(
+        "--start-poses",
+        default=None,
+        help="'x,y,yaw_deg;x,y,yaw_deg;...' world-frame start poses, one per vehicle "
+        "(default: the world's suggestions)",
+    )
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
     return p.parse_args(argv)
 
@@ -71,12 +85,29 @@ def camera_config(a: argparse.Namespace) -> CameraConfig | None:
     return cfg
 
 
+def parse_start_poses(text: str | None) -> list[tuple[float, float, float, float]] | None:
+    """Parse 'x,y,yaw_deg;...' into (x, y, 0, yaw_rad) poses."""
+    if text is None:
+        return None
+    poses = []
+    for part in text.split(";"):
+        x, y, yaw = (float(v) for v in part.split(","))
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            raise ValueError(f"start pose {part!r} is not finite")
+        poses.append((x, y, 0.0, math.radians(yaw)))
+    return poses
+
+
 def main(argv: list[str] | None = None) -> int:
     """Start the simulation, print the endpoints as JSON, run until SIGINT/SIGTERM or --duration."""
     a = parse_args(argv)
     try:
         cam = camera_config(a)
         world = build_world(a.world, a.seed, a.size)
+        poses = parse_start_poses(a.start_poses)
+        own_dir = None
+        if a.camera_dir is None and cam is not None:
+            own_dir = a.camera_dir = tempfile.mkdtemp(prefix="coopd-sim-")
         sim = Simulation(
             world,
             a.vehicles,
@@ -85,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             noise=a.noise,
             camera=cam,
             frame=a.frame,
+            start_poses=poses,
             mavlink_base_port=a.mavlink_port,
             camera_dir=a.camera_dir,
             camera_tcp_base_port=a.camera_tcp_port,
@@ -109,11 +141,15 @@ def main(argv: list[str] | None = None) -> int:
             stop.wait(0.2)
     finally:
         sim.stop()
+        if own_dir is not None:
+            with contextlib.suppress(OSError):
+                os.rmdir(own_dir)
     wall = time.monotonic() - wall0
     stats = {
         "sim_time_s": round(sim.time, 3),
         "wall_s": round(wall, 3),
         "real_time_factor": round(sim.time / wall, 3) if wall > 0 else None,
+        "pacing_resets": sim.lag_resets,
         "mavlink": [dict(v.link.stats) if v.link else {} for v in sim.vehicles],
         "camera_frames_dropped": [v.publisher.frames_dropped if v.publisher else 0 for v in sim.vehicles],
     }

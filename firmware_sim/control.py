@@ -1,13 +1,18 @@
-"""Cascaded quadrotor controller (position -> velocity -> thrust vector -> attitude -> torque), pure."""
+"""Cascaded quadrotor controller (position -> velocity -> thrust vector -> attitude -> torque), pure.
+
+Plain-float arithmetic on 3-vectors (tuples/lists) and 3x3 matrices (nested lists, row-major): at these
+sizes it is several times faster than numpy, and it runs for every vehicle at 125 Hz of sim time.
+"""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
 GRAVITY = 9.81
+
+Vec = tuple[float, float, float] | list[float]
+Mat = list[list[float]]
 
 
 @dataclass(frozen=True)
@@ -40,64 +45,68 @@ class Gains:
     max_yaw_rate: float = math.radians(90)
 
 
-def velocity_setpoint(pos, pos_sp, gains: Gains, max_speed_xy: float | None = None) -> np.ndarray:
+def velocity_setpoint(pos: Vec, pos_sp: Vec, gains: Gains, max_speed_xy: float | None = None) -> list[float]:
     """Position P-loop: velocity towards the setpoint, saturated with the direction kept."""
-    v = gains.pos_p * (np.asarray(pos_sp) - np.asarray(pos))
+    vx, vy, vz = (gains.pos_p * (pos_sp[k] - pos[k]) for k in range(3))
     vmax = gains.max_speed_xy if max_speed_xy is None else max_speed_xy
-    h = math.hypot(v[0], v[1])
+    h = math.hypot(vx, vy)
     if h > vmax:
-        v[:2] *= vmax / h
-    v[2] = min(max(v[2], -gains.max_speed_z_down), gains.max_speed_z_up)
-    return v
+        vx, vy = vx * vmax / h, vy * vmax / h
+    return [vx, vy, min(max(vz, -gains.max_speed_z_down), gains.max_speed_z_up)]
 
 
-def thrust_vector(vel, vel_sp, vel_integral, airframe: Airframe, gains: Gains) -> np.ndarray:
+def thrust_vector(vel: Vec, vel_sp: Vec, vel_integral: Vec, airframe: Airframe, gains: Gains) -> tuple:
     """Velocity PI-loop: the desired force (N, local ENU) including gravity, tilt and thrust limited."""
-    acc = gains.vel_p * (np.asarray(vel_sp) - np.asarray(vel)) + gains.vel_i * np.asarray(vel_integral)
-    h = math.hypot(acc[0], acc[1])
+    ax, ay, az = (gains.vel_p * (vel_sp[k] - vel[k]) + gains.vel_i * vel_integral[k] for k in range(3))
+    h = math.hypot(ax, ay)
     if h > gains.max_accel_xy:
-        acc[:2] *= gains.max_accel_xy / h
-    fz = airframe.mass * (GRAVITY + acc[2])
-    fz = min(max(fz, 0.2 * airframe.mass * GRAVITY), airframe.max_thrust_to_weight * airframe.mass * GRAVITY)
-    fxy = airframe.mass * acc[:2]
+        ax, ay = ax * gains.max_accel_xy / h, ay * gains.max_accel_xy / h
+    m = airframe.mass
+    fz = min(max(m * (GRAVITY + az), 0.2 * m * GRAVITY), airframe.max_thrust_to_weight * m * GRAVITY)
+    fx, fy = m * ax, m * ay
     max_xy = fz * math.tan(gains.max_tilt)
-    n = math.hypot(fxy[0], fxy[1])
+    n = math.hypot(fx, fy)
     if n > max_xy:
-        fxy *= max_xy / n
-    return np.array([fxy[0], fxy[1], fz])
+        fx, fy = fx * max_xy / n, fy * max_xy / n
+    return (fx, fy, fz)
 
 
-def _cross(a, b) -> tuple[float, float, float]:
-    """Cross product of two 3-vectors as plain floats (np.cross is slow for single vectors)."""
+def _cross(a: Vec, b: Vec) -> tuple[float, float, float]:
+    """Cross product of two 3-vectors."""
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def desired_rotation(force, yaw: float) -> np.ndarray:
-    """Rotation (body FLU in ENU) whose z axis is along the force and whose heading is yaw."""
-    fx, fy, fz = (float(v) for v in force)
+def desired_rotation(force: Vec, yaw: float) -> Mat:
+    """Rotation (body FLU in ENU, rows) whose z axis is along the force and whose heading is yaw."""
+    fx, fy, fz = force
     n = max(1e-9, math.sqrt(fx * fx + fy * fy + fz * fz))
     z = (fx / n, fy / n, fz / n)
     y = _cross(z, (math.cos(yaw), math.sin(yaw), 0.0))
     ny = max(1e-9, math.sqrt(y[0] ** 2 + y[1] ** 2 + y[2] ** 2))
     y = (y[0] / ny, y[1] / ny, y[2] / ny)
     x = _cross(y, z)
-    return np.array([[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]])
+    return [[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]]
 
 
-def attitude_torque(r, r_des, omega_body, airframe: Airframe, gains: Gains) -> np.ndarray:
+def attitude_torque(r: Mat, r_des: Mat, omega_body: Vec, airframe: Airframe, gains: Gains) -> tuple:
     """Geometric attitude PD-loop on SO(3): body torque (N m), saturated per axis."""
-    e = 0.5 * (r_des.T @ r - r.T @ r_des)
-    e_r = np.array([e[2, 1], e[0, 2], e[1, 0]])
-    inertia = np.asarray(airframe.inertia)
-    wn2 = np.array([gains.att_p**2, gains.att_p**2, gains.yaw_p**2])
-    damp = np.array([2 * 0.9 * gains.att_p, 2 * 0.9 * gains.att_p, 2 * 1.0 * gains.yaw_p])
-    tau = -inertia * (wn2 * e_r + damp * np.asarray(omega_body))
-    return np.clip(tau, -np.asarray(airframe.max_torque), np.asarray(airframe.max_torque))
+
+    def m(i: int, j: int) -> float:  # (r_des^T r)[i][j]
+        return r_des[0][i] * r[0][j] + r_des[1][i] * r[1][j] + r_des[2][i] * r[2][j]
+
+    e = (0.5 * (m(2, 1) - m(1, 2)), 0.5 * (m(0, 2) - m(2, 0)), 0.5 * (m(1, 0) - m(0, 1)))
+    wn2 = (gains.att_p**2, gains.att_p**2, gains.yaw_p**2)
+    damp = (1.8 * gains.att_p, 1.8 * gains.att_p, 2.0 * gains.yaw_p)
+    out = []
+    for k in range(3):
+        tau = -airframe.inertia[k] * (wn2[k] * e[k] + damp[k] * omega_body[k])
+        out.append(min(max(tau, -airframe.max_torque[k]), airframe.max_torque[k]))
+    return tuple(out)
 
 
-def collective_thrust(force, r) -> float:
-    """Thrust magnitude along the current body z axis that realises the force's vertical intent."""
-    return max(0.0, float(np.dot(force, r[:, 2])))
+def collective_thrust(force: Vec, r: Mat) -> float:
+    """Thrust magnitude along the current body z axis (third column of r) that realises the force."""
+    return max(0.0, force[0] * r[0][2] + force[1] * r[1][2] + force[2] * r[2][2])
 
 
 def slew_yaw(current: float, target: float, max_rate: float, dt: float) -> float:

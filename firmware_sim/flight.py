@@ -86,7 +86,7 @@ class FlightController:
     messages: list[tuple[int, str]] = field(default_factory=list)
     cruise_speed: float | None = None
     yaw_sp: float = 0.0
-    vel_integral: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    vel_integral: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     armed_at: float = 0.0
     mode_since: float = 0.0
     slow_since: float | None = None
@@ -103,7 +103,7 @@ class FlightController:
         """Arm the motors (on the ground or not); 0 = MAV_RESULT_ACCEPTED."""
         if not self.armed:
             self.armed, self.armed_at = True, t
-            self.vel_integral[:] = 0
+            self.vel_integral = [0.0, 0.0, 0.0]
             if self.last_state is not None:
                 self.home = self.last_state.pos.copy()
                 self.yaw_sp = yaw_of(self.last_state.rot)
@@ -163,6 +163,8 @@ class FlightController:
         """Descend where the vehicle is and disarm on touchdown."""
         if not self.armed:
             return 2
+        if self.last_state is not None:  # land where it is now, not at an older hold point
+            self.hold = Setpoint(pos=self.last_state.pos.copy(), yaw=self.yaw_sp)
         self._set_mode(MAIN_AUTO, SUB_LAND, t)
         self.slow_since = None
         return 0
@@ -227,7 +229,7 @@ class FlightController:
         sp = self._mode_setpoint(t, dt, s)
         if self.landed:
             if not self._wants_to_climb(s, sp):
-                self.vel_integral[:] = 0
+                self.vel_integral = [0.0, 0.0, 0.0]
                 if self.armed and t - self.armed_at > self.param("COM_DISARM_PRFLT", PREFLIGHT_DISARM_S):
                     self.armed = False
                     self.messages.append((6, "Disarmed: no takeoff"))
@@ -360,22 +362,26 @@ class FlightController:
     def _control(self, dt: float, s: EstimatedState, sp: Setpoint) -> tuple[np.ndarray, np.ndarray]:
         """Run the cascade for a setpoint; NaN position components fall back to velocity control."""
         g = self.gains
-        vel_sp = np.zeros(3) if sp.vel is None else np.nan_to_num(np.asarray(sp.vel, float))
+        pos, vel, rot, omega = s.pos.tolist(), s.vel.tolist(), s.rot.tolist(), s.omega_body.tolist()
+        vel_sp = [0.0] * 3 if sp.vel is None else [float(x) if math.isfinite(x) else 0.0 for x in sp.vel]
         if sp.pos is not None:
-            pos_sp = np.asarray(sp.pos, float)
-            known = np.isfinite(pos_sp)
+            pos_sp = [float(x) for x in sp.pos]
+            known = [math.isfinite(x) for x in pos_sp]
             cruise = self.cruise_speed or self.param("MPC_XY_CRUISE", g.max_speed_xy)
-            v_pos = control.velocity_setpoint(s.pos, np.where(known, pos_sp, s.pos), g, cruise)
-            vel_sp = np.where(known, v_pos + (0 if sp.vel is None else vel_sp), vel_sp)
+            target = [pos_sp[k] if known[k] else pos[k] for k in range(3)]
+            v_pos = control.velocity_setpoint(pos, target, g, cruise)
+            feed = sp.vel is not None
+            vel_sp = [(v_pos[k] + (vel_sp[k] if feed else 0.0)) if known[k] else vel_sp[k] for k in range(3)]
         if sp.yaw_rate is not None and math.isfinite(sp.yaw_rate):
             self.yaw_sp = wrap_pi(self.yaw_sp + max(-g.max_yaw_rate, min(g.max_yaw_rate, sp.yaw_rate)) * dt)
         elif sp.yaw is not None and math.isfinite(sp.yaw):
             self.yaw_sp = control.slew_yaw(self.yaw_sp, sp.yaw, g.max_yaw_rate, dt)
-        err = vel_sp - s.vel
-        self.vel_integral = np.clip(self.vel_integral + err * dt, -2.0, 2.0)
-        force = control.thrust_vector(s.vel, vel_sp, self.vel_integral, self.airframe, g)
+        self.vel_integral = [
+            min(2.0, max(-2.0, self.vel_integral[k] + (vel_sp[k] - vel[k]) * dt)) for k in range(3)
+        ]
+        force = control.thrust_vector(vel, vel_sp, self.vel_integral, self.airframe, g)
         r_des = control.desired_rotation(force, self.yaw_sp)
-        torque = control.attitude_torque(s.rot, r_des, s.omega_body, self.airframe, g)
-        thrust = control.collective_thrust(force, s.rot)
-        self.last_force = thrust * s.rot[:, 2]
-        return self.last_force, torque
+        torque = control.attitude_torque(rot, r_des, omega, self.airframe, g)
+        thrust = control.collective_thrust(force, rot)
+        self.last_force = np.array([thrust * rot[0][2], thrust * rot[1][2], thrust * rot[2][2]])
+        return self.last_force, np.array(torque)

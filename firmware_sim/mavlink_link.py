@@ -86,8 +86,8 @@ class _Writer:
 
 
 def ned_to_enu(v) -> np.ndarray:
-    """NED vector to the ENU-like reporting frame (the same swap both ways)."""
-    return ENU_TO_NED @ np.asarray(v, float)
+    """NED vector to the ENU-like reporting frame by swapping, so unset (NaN) components stay apart."""
+    return np.array([v[1], v[0], -v[2]], dtype=float)
 
 
 class MavlinkLink:
@@ -128,6 +128,7 @@ class MavlinkLink:
             mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
         }
         self._interval_reply = (0, -1)
+        self._covariances = self._covariance_lists()
 
     # ------------------------------------------------------------------ plumbing
 
@@ -235,6 +236,7 @@ class MavlinkLink:
     # ------------------------------------------------------------------ telemetry producers
 
     def _heartbeat(self, t: float):
+        """HEARTBEAT: PX4 quadrotor, armed flag, PX4 custom mode (main << 16 | sub << 24)."""
         fc = self.v.fc
         base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_STABILIZE_ENABLED
         if fc.main_mode in (flight.MAIN_AUTO, flight.MAIN_OFFBOARD):
@@ -248,17 +250,21 @@ class MavlinkLink:
         )
 
     def _sys_status(self, t: float):
+        """SYS_STATUS: every sensor present, enabled and healthy, pre-arm checks passing."""
         return self.tx.sys_status_encode(SENSORS, SENSORS, SENSORS, 200, 16000, 500, 90, 0, 0, 0, 0, 0, 0)
 
     def _system_time(self, t: float):
+        """SYSTEM_TIME: wall-clock Unix time plus the simulated time since boot."""
         return self.tx.system_time_encode(int((self.boot_wall + t) * 1e6), int(t * 1000) & 0xFFFFFFFF)
 
     def _attitude(self, t: float):
+        """ATTITUDE: reported roll, pitch, yaw (NED/FRD) and body rates."""
         _, r, _, w, _ = self._report(t)
         roll, pitch, yaw = euler_zyx(r)
         return self.tx.attitude_encode(int(t * 1000) & 0xFFFFFFFF, roll, pitch, yaw, *map(float, w))
 
     def _attitude_quaternion(self, t: float):
+        """ATTITUDE_QUATERNION: reported attitude (w, x, y, z) and body rates."""
         _, r, _, w, _ = self._report(t)
         q = mat_to_quat(r)
         return self.tx.attitude_quaternion_encode(
@@ -266,21 +272,15 @@ class MavlinkLink:
         )
 
     def _local_position(self, t: float):
+        """LOCAL_POSITION_NED: reported position and velocity in the vehicle's local frame."""
         p, _, v, _, _ = self._report(t)
         return self.tx.local_position_ned_encode(int(t * 1000) & 0xFFFFFFFF, *map(float, p), *map(float, v))
 
     def _odometry(self, t: float):
+        """ODOMETRY: local NED pose, body-FRD velocity and rates, covariances from the noise model."""
         p, r, v, w, _ = self._report(t)
         v_body = r.T @ v
-        n = self.v.odometry.noise
-        pc = [math.nan] * 21
-        vc = [math.nan] * 21
-        for k, sig in zip((0, 6, 11), (n.pos_sigma_m,) * 3, strict=True):
-            pc[k] = max(sig, 1e-3) ** 2
-        for k in (15, 18, 20):
-            pc[k] = max(n.att_sigma_rad, 1e-3) ** 2
-        for k in (0, 6, 11):
-            vc[k] = max(n.vel_sigma_m_s, 1e-3) ** 2
+        pc, vc = self._covariances
         return self.tx.odometry_encode(
             int(t * 1e6),
             mav.MAV_FRAME_LOCAL_NED,
@@ -296,7 +296,19 @@ class MavlinkLink:
             100,
         )
 
+    def _covariance_lists(self) -> tuple[list[float], list[float]]:
+        """ODOMETRY's pose and velocity covariances (upper triangles) from the noise model."""
+        n = self.v.odometry.noise
+        pc, vc = [math.nan] * 21, [math.nan] * 21
+        for k in (0, 6, 11):
+            pc[k] = max(n.pos_sigma_m, 1e-3) ** 2
+            vc[k] = max(n.vel_sigma_m_s, 1e-3) ** 2
+        for k in (15, 18, 20):
+            pc[k] = max(n.att_sigma_rad, 1e-3) ** 2
+        return pc, vc
+
     def _global_position(self, t: float):
+        """GLOBAL_POSITION_INT: the estimate mapped to latitude/longitude (flat earth)."""
         p, r, v, _, p_enu = self._report(t)
         lat, lon, alt = self._lla_of_local(p_enu)
         rel = p_enu[2] - self.v.fc.home[2]
@@ -312,6 +324,7 @@ class MavlinkLink:
         )
 
     def _gps_raw(self, t: float):
+        """GPS_RAW_INT: a steady 3D fix at the estimated position (MAVSDK's gps info)."""
         _, _, _, _, p_enu = self._report(t)
         lat, lon, alt = self._lla_of_local(p_enu)
         return self.tx.gps_raw_int_encode(
@@ -328,6 +341,7 @@ class MavlinkLink:
         )
 
     def _home_position(self, t: float):
+        """HOME_POSITION: where the vehicle armed, geodetic and local."""
         h = self.v.fc.home
         lat, lon, alt = self._lla_of_local(h)
         hn = ENU_TO_NED @ h
@@ -344,13 +358,16 @@ class MavlinkLink:
         )
 
     def _extended_sys_state(self, t: float):
+        """EXTENDED_SYS_STATE: multicopter, landed state from the flight controller."""
         return self.tx.extended_sys_state_encode(0, self.v.fc.flight_status())
 
     def _battery(self, t: float):
+        """BATTERY_STATUS: a healthy 4S battery (the emulator does not drain it)."""
         cells = [4000, 4000, 4000, 4000] + [65535] * 6
         return self.tx.battery_status_encode(0, 0, 0, 2500, cells, 500, -1, -1, 90)
 
     def _mission_current(self, t: float):
+        """MISSION_CURRENT: current item, total, and mission state."""
         fc = self.v.fc
         total = len(self.mission.plans[0])
         seq = min(fc.mission_index, max(0, total - 1)) if total else 0
@@ -367,6 +384,7 @@ class MavlinkLink:
         )
 
     def _autopilot_version(self, t: float):
+        """AUTOPILOT_VERSION: capabilities (mission/command int, bytewise params, MAVLink 2)."""
         uid = 0x5EED0000 + self.v.system_id
         return self.tx.autopilot_version_encode(
             CAPABILITIES,
@@ -404,6 +422,7 @@ class MavlinkLink:
         handler(m)
 
     def _on_heartbeat(self, m) -> None:
+        """Count the peer's heartbeats (visible in stats)."""
         self.stats["peer_heartbeats"] += 1
 
     def _on_timesync(self, m) -> None:
@@ -412,11 +431,13 @@ class MavlinkLink:
             self.send(self.tx.timesync_encode(int(self.sim.time * 1e9), m.ts1))
 
     def _on_param_request_list(self, m) -> None:
+        """Send every parameter."""
         params = self.v.fc.params
         for i, name in enumerate(sorted(params)):
             self._send_param(name, i, len(params))
 
     def _on_param_request_read(self, m) -> None:
+        """Send one parameter by name or index; unknown ones are counted and ignored."""
         params = self.v.fc.params
         names = sorted(params)
         name = _param_name(m.param_id)
@@ -430,6 +451,7 @@ class MavlinkLink:
             self.stats["param_unknown"] += 1
 
     def _on_param_set(self, m) -> None:
+        """Set a known parameter (NaN refused) and echo its value; unknown ones are ignored."""
         params = self.v.fc.params
         name = _param_name(m.param_id)
         if name not in params:
@@ -483,7 +505,8 @@ class MavlinkLink:
         if frame in (mav.MAV_FRAME_BODY_NED, mav.MAV_FRAME_BODY_OFFSET_NED):
             c, sn = math.cos(yaw_now), math.sin(yaw_now)
             rz = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
-            pos, vel = here + rz @ np.nan_to_num(pos) if np.isfinite(pos).any() else pos, rz @ vel
+            pos, vel = _rotate_keeping_unset(rz, pos), _rotate_keeping_unset(rz, vel)
+            pos = here + np.nan_to_num(pos) if np.isfinite(pos).any() else pos
         elif frame == mav.MAV_FRAME_LOCAL_OFFSET_NED:
             pos = here + np.nan_to_num(pos) if np.isfinite(pos).any() else pos
         elif frame != mav.MAV_FRAME_LOCAL_NED:
@@ -506,10 +529,12 @@ class MavlinkLink:
     # ------------------------------------------------------------------ commands
 
     def _on_command_long(self, m) -> None:
+        """COMMAND_LONG: params 1-7 as floats."""
         p = [m.param1, m.param2, m.param3, m.param4, m.param5, m.param6, m.param7]
         self._command(m, m.command, p, is_int=False)
 
     def _on_command_int(self, m) -> None:
+        """COMMAND_INT: x, y as 1e-7 degrees, z as float."""
         p = [m.param1, m.param2, m.param3, m.param4, m.x * 1e-7, m.y * 1e-7, m.z]
         self._command(m, m.command, p, is_int=True, int_xy=(m.x, m.y))
 
@@ -540,6 +565,7 @@ class MavlinkLink:
         self.v.fc.mission_hold_until = None
 
     def _cmd_arm(self, p, _xy) -> int:
+        """MAV_CMD_COMPONENT_ARM_DISARM (param2 21196 forces a disarm in the air)."""
         fc = self.v.fc
         if not math.isfinite(p[0]):
             return mav.MAV_RESULT_DENIED
@@ -548,26 +574,32 @@ class MavlinkLink:
         return fc.disarm(self.sim.time, force=int(p[1]) == FORCE_DISARM_MAGIC)
 
     def _cmd_takeoff(self, p, _xy) -> int:
+        """MAV_CMD_NAV_TAKEOFF: param7 is AMSL altitude, NaN means MIS_TAKEOFF_ALT above home."""
         alt = p[6]
         rel = None if not math.isfinite(alt) else alt - self._home_amsl()
         return self.v.fc.takeoff(self.sim.time, rel)
 
     def _cmd_land(self, p, _xy) -> int:
+        """MAV_CMD_NAV_LAND where the vehicle is."""
         return self.v.fc.land(self.sim.time)
 
     def _cmd_rtl(self, p, _xy) -> int:
+        """MAV_CMD_NAV_RETURN_TO_LAUNCH."""
         return self.v.fc.return_to_launch(self.sim.time)
 
     def _cmd_set_mode(self, p, _xy) -> int:
+        """MAV_CMD_DO_SET_MODE with PX4 custom main/sub modes."""
         if not all(math.isfinite(x) for x in p[:3]) or not int(p[0]) & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return mav.MAV_RESULT_DENIED
         return self.v.fc.set_mode(int(p[1]), int(p[2]), self.sim.time)
 
     def _cmd_mission_start(self, p, _xy) -> int:
+        """MAV_CMD_MISSION_START from param1 (first item)."""
         first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else 0
         return self.v.fc.start_mission(self.sim.time, first)
 
     def _cmd_reposition(self, p, xy) -> int:
+        """MAV_CMD_DO_REPOSITION: go to lat/lon/alt (NaN keeps current) and hold."""
         s = self.sim.estimated_state(self.v)
         lat, lon = (xy[0] * 1e-7, xy[1] * 1e-7) if xy is not None else (p[4], p[5])
         has_xy = math.isfinite(lat) and math.isfinite(lon) and not (xy is not None and xy == (0, 0))
@@ -579,12 +611,14 @@ class MavlinkLink:
         return self.v.fc.reposition(self.sim.time, target, yaw)
 
     def _cmd_change_speed(self, p, _xy) -> int:
+        """MAV_CMD_DO_CHANGE_SPEED: horizontal cruise speed (param2, m/s)."""
         if not (math.isfinite(p[1]) and 0 < p[1] <= 20):
             return mav.MAV_RESULT_DENIED
         self.v.fc.cruise_speed = float(p[1])
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_set_message_interval(self, p, _xy) -> int:
+        """MAV_CMD_SET_MESSAGE_INTERVAL: microseconds, 0 default, -1 off."""
         msg_id, interval_us = int(p[0]), p[1]
         if msg_id not in self.producers or msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return mav.MAV_RESULT_UNSUPPORTED
@@ -602,6 +636,7 @@ class MavlinkLink:
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_get_message_interval(self, p, _xy) -> int:
+        """MAV_CMD_GET_MESSAGE_INTERVAL: answer with MESSAGE_INTERVAL after the ACK."""
         msg_id = int(p[0])
         if msg_id not in self.producers:
             return mav.MAV_RESULT_UNSUPPORTED
@@ -611,6 +646,7 @@ class MavlinkLink:
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_request_message(self, p, _xy) -> int:
+        """MAV_CMD_REQUEST_MESSAGE for any message the emulator produces."""
         msg_id = int(p[0])
         if msg_id not in self.producers:
             return mav.MAV_RESULT_UNSUPPORTED
@@ -618,10 +654,12 @@ class MavlinkLink:
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_request_autopilot_capabilities(self, p, _xy) -> int:
+        """MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: AUTOPILOT_VERSION after the ACK."""
         self._after_ack.append(mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_set_home(self, p, _xy) -> int:
+        """MAV_CMD_DO_SET_HOME: param1 = 1 uses the current position; other locations are denied."""
         fc = self.v.fc
         if p[0] >= 0.5 and fc.last_state is not None:
             fc.home = fc.last_state.pos.copy()
@@ -629,6 +667,7 @@ class MavlinkLink:
         return mav.MAV_RESULT_DENIED
 
     def _cmd_condition_yaw(self, p, _xy) -> int:
+        """MAV_CMD_CONDITION_YAW: absolute or relative heading for the hold setpoint."""
         fc = self.v.fc
         if not math.isfinite(p[0]) or fc.hold.pos is None:
             return mav.MAV_RESULT_DENIED
@@ -638,6 +677,16 @@ class MavlinkLink:
             yaw_ned = euler_zyx(enu_flu_to_ned_frd(fc.last_state.rot))[2] + direction * yaw_ned
         fc.hold.yaw = wrap_pi(math.pi / 2 - yaw_ned)
         return mav.MAV_RESULT_ACCEPTED
+
+
+def _rotate_keeping_unset(rz: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate a body-frame vector about z; unset (NaN) components stay unset, horizontal as a pair."""
+    out = rz @ np.nan_to_num(v)
+    if np.isnan(v[:2]).all():
+        out[:2] = math.nan
+    if math.isnan(v[2]):
+        out[2] = math.nan
+    return out
 
 
 def _param_name(raw) -> str:

@@ -36,6 +36,7 @@ class OdometryModel:
     """Maps true world state to the vehicle's estimate in its reporting frame (ENU-like, origin o, yaw)."""
 
     def __init__(self, frame_origin, frame_yaw: float, noise: NoiseConfig, rng: np.random.Generator):
+        """Draw this vehicle's drift once from its own generator; noise gets a generator of its own."""
         self.origin = np.asarray(frame_origin, float)
         self.frame_rot = rot_z(frame_yaw)
         self.noise = noise
@@ -48,10 +49,13 @@ class OdometryModel:
         )
         self.drift_yaw_rate = float(rng.normal(0, 1) * noise.drift_yaw_rad_s)
         self._noise_rng = np.random.default_rng(rng.integers(1 << 62))
+        self._drift_cache: tuple = (None, None, None)
 
     def drift(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """(rotation, translation) of the estimate's frame error at sim time t."""
-        return rot_z(self.drift_yaw_rate * t), self.drift_vel * t
+        """(rotation, translation) of the estimate's frame error at sim time t (memoised per t)."""
+        if self._drift_cache[0] != t:
+            self._drift_cache = (t, rot_z(self.drift_yaw_rate * t), self.drift_vel * t)
+        return self._drift_cache[1], self._drift_cache[2]
 
     def estimate(self, t: float, pos_w, rot_w, vel_w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Noise-free estimate (pos, rotation, velocity) in the local ENU reporting frame at time t."""
@@ -76,12 +80,11 @@ class OdometryModel:
     def noisy(self, pos, rot, vel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Add white noise (seeded) to an estimate before it is reported."""
         n = self.noise
-        g = self._noise_rng
-        pos = pos + g.normal(0, 1, 3) * n.pos_sigma_m
-        vel = vel + g.normal(0, 1, 3) * n.vel_sigma_m_s
+        z = self._noise_rng.standard_normal(9)
+        pos = pos + z[:3] * n.pos_sigma_m
+        vel = vel + z[3:6] * n.vel_sigma_m_s
         if n.att_sigma_rad > 0:
-            a = g.normal(0, 1, 3) * n.att_sigma_rad
-            rot = _small_rotation(a) @ rot
+            rot = _small_rotation(z[6:] * n.att_sigma_rad) @ rot
         return pos, rot, vel
 
 

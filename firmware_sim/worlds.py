@@ -42,11 +42,15 @@ class World:
 
     def ground_truth(self, resolution: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
         """Voxelise the geometry: (occ[x, y, z] bool, world coordinates of the centre of cell [0,0,0])."""
+        occ, origin = self._grid(resolution)
+        return occ.copy(), origin.copy()
+
+    def _grid(self, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+        """The cached ground-truth grid (callers must not modify it)."""
         key = float(resolution)
         if key not in self._gt_cache:
             self._gt_cache[key] = voxelize(self.shapes, self.bounds_min, self.bounds_max, key)
-        occ, origin = self._gt_cache[key]
-        return occ, origin.copy()
+        return self._gt_cache[key]
 
     def loop_length(self) -> float:
         """Length of the closed exploration loop in metres."""
@@ -55,7 +59,7 @@ class World:
 
     def is_clear(self, x: float, y: float, radius: float) -> bool:
         """True if no geometry lies within radius (xy) of (x, y) between 5 cm and 2 m above the floor."""
-        occ, origin = self.ground_truth(0.1)
+        occ, origin = self._grid(0.1)
         idx = np.round((np.array([x, y]) - origin[:2]) / 0.1).astype(int)
         r = int(math.ceil(radius / 0.1))
         z0, z1 = int(round((0.05 - origin[2]) / 0.1)), int(round((2.0 - origin[2]) / 0.1))

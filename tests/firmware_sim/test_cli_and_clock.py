@@ -98,3 +98,33 @@ def test_speed_runs_one_clock_for_mavlink_and_camera(tmp_path, port_block):
         cam.close()
         client.conn.close()
         sim.stop()
+
+
+def test_cli_start_poses(port_block):
+    cmd = [
+        sys.executable,
+        "-m",
+        "firmware_sim.cli",
+        "--world",
+        "small_house",
+        "--vehicles",
+        "2",
+        "--start-poses",
+        "3,2.5,90;9,7.5,-45",
+        "--duration",
+        "0.5",
+        "--speed",
+        "5",
+        "--no-camera",
+        "--mavlink-port",
+        str(port_block),
+    ]
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    vehicles = json.loads(out.stdout.splitlines()[0])["vehicles"]
+    assert vehicles[1]["start_pose"][:2] == [9.0, 7.5]
+    assert abs(vehicles[1]["start_pose"][3] + 0.7854) < 1e-3
+    bad = subprocess.run(
+        cmd[:6] + ["--start-poses", "1,2"], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert bad.returncode == 2
