@@ -90,6 +90,7 @@ class VehicleLink:
         self.target_system = config.target_system
         self.state = "connecting"
         self.native_id: int | None = None
+        self._heartbeat_in_read = False
         self.max_step_s = 0.0  # longest loop iteration: shows the thread never stalls
         self._last_heartbeat = -math.inf
         self._last_rx = -math.inf
@@ -186,6 +187,7 @@ class VehicleLink:
             self.counters["rx_parse_errors"] += 1
             return
         from_fc = False
+        self._heartbeat_in_read = False
         for m in msgs[:MAX_MESSAGES_PER_READ]:
             if m.get_type() == "BAD_DATA":
                 self.counters["rx_bad_data"] += 1
@@ -194,7 +196,7 @@ class VehicleLink:
                 from_fc |= self._dispatch(m, now)
             except (ValueError, TypeError, AttributeError, OverflowError):
                 self.counters["rx_handler_errors"] += 1
-        if from_fc:
+        if from_fc and (self._heartbeat_in_read or self.transport.peer is None):
             self.transport.accept_source()
 
     def _reset_parser(self) -> None:
@@ -223,6 +225,7 @@ class VehicleLink:
         if kind == "HEARTBEAT":
             if self._is_autopilot(m):
                 self._last_heartbeat = now
+                self._heartbeat_in_read = True  # the FC's address may move only with its heartbeat
         elif kind == "ODOMETRY":
             self._last_odometry_msg = now
             self._take_pose(m.time_usec * 1e-6, lambda: self.odometry.from_odometry(m), now)
