@@ -215,7 +215,10 @@ class VehicleLink:
         if kind == "HEARTBEAT" and self.target_system == 0 and self._is_autopilot(m):
             self.target_system = src
             log.info("locked onto autopilot system %d (component %d)", src, m.get_srcComponent())
-        if src != self.target_system or self.target_system == 0:
+        if self.target_system == 0:
+            self.counters["rx_before_lock"] += 1  # no autopilot heartbeat yet: nobody to follow
+            return False
+        if src != self.target_system:
             self.counters["rx_foreign"] += 1
             return False
         self.counters["rx_messages"] += 1
