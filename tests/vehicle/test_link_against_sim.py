@@ -219,3 +219,19 @@ def test_each_link_follows_its_own_vehicle(world, udp_port):
         for lk in links:
             lk.stop()
         sim.stop()
+
+
+def test_system_time_stands_in_when_timesync_is_unanswered(rig):
+    def deaf_to_timesync(sim):
+        sim.vehicle(0).link._on_timesync = lambda m: None  # an FC that never answers TIMESYNC
+
+    sim, link = rig(speed=2.0, before_start=deaf_to_timesync)
+    assert wait_until(lambda: (e := link.clock.estimate()) is not None and e.samples >= 4, 8.0), link.status()
+    est = link.clock.estimate()
+    with sim.lock:
+        err = est.fc_time(time.monotonic()) - sim.time
+    print(
+        f"SYSTEM_TIME fallback: rate {est.rate:.4f}, error {err * 1e3:.1f} ms, "
+        f"claimed {est.uncertainty_s * 1e3:.1f} ms"
+    )
+    assert est.source == "system_time" and abs(est.rate - 2.0) < 0.1 and abs(err) < 0.1
