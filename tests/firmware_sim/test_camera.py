@@ -248,3 +248,13 @@ def test_extrinsics_offset_and_tilt(house):
     depth = sim.vehicle(0).camera.render_depth(sim.data)
     np.testing.assert_allclose(depth[50:70, 70:90], 2.9, atol=1e-6)
     sim.stop()
+
+
+def test_fast_and_general_z16_paths_agree(house):
+    sim = Simulation(house, 1, seed=0, mavlink=False)
+    sim.place_vehicle(0, (8.0, 3.0, 1.0), yaw=2.3)
+    cam = sim.vehicle(0).camera
+    from firmware_sim.camera import depth_to_z16
+
+    np.testing.assert_array_equal(cam.render_z16(sim.data), depth_to_z16(cam.render_depth(sim.data), cam.cfg))
+    sim.stop()
