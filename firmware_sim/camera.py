@@ -124,7 +124,7 @@ class DepthCamera:
         self._cast(data)  # clean fast path: no NaN round trip
         d = self.dist
         valid = (d >= cfg.min_m) & (d <= cfg.max_m)
-        out = np.rint(np.where(valid, d, 0.0) * (1.0 / cfg.scale)).astype("<u2")
+        out = np.rint(np.where(valid, d, 0.0) / cfg.scale).astype("<u2")
         return out.reshape(cfg.height, cfg.width)
 
     def header(self, seq: int, t_us: int) -> dict:
