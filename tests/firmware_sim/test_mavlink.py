@@ -308,3 +308,34 @@ def test_legacy_float_mission_in_local_ned(sim_and_client):
     fwd, right = np.array([math.cos(h), math.sin(h)]), np.array([math.sin(h), -math.cos(h)])
     d = sim.true_pose(0)[0][:2] - np.array(sim.vehicle(0).true_start_pose[:2])
     assert abs(d @ fwd - 1.0) < 0.35 and abs(d @ right - 0.5) < 0.35
+
+
+def test_interval_query_yaw_speed_and_mission_housekeeping(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    assert c0.command(mav.MAV_CMD_GET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_ODOMETRY) == 0
+    iv = c0.wait("MESSAGE_INTERVAL", lambda m: m.message_id == mav.MAVLINK_MSG_ID_ODOMETRY)
+    assert iv is not None and iv.interval_us == pytest.approx(33333, abs=2)
+    # Mission housekeeping: upload, jump, clear.
+    rel = mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+    home = c0.wait("HOME_POSITION")
+    wp = {
+        "frame": rel,
+        "command": mav.MAV_CMD_NAV_WAYPOINT,
+        "x": home.latitude,
+        "y": home.longitude,
+        "z": 1.0,
+    }
+    assert c0.upload_mission([wp, wp, wp]) == mav.MAV_MISSION_ACCEPTED
+    c0.mav.mission_set_current_send(1, 1, 2)
+    assert c0.wait("MISSION_CURRENT", lambda m: m.seq == 2 and m.total == 3) is not None
+    c0.mav.mission_clear_all_send(1, 1, 0)
+    assert c0.wait("MISSION_ACK").type == mav.MAV_MISSION_ACCEPTED
+    assert sim.vehicle(0).fc.mission == []
+    # Heading and speed commands in flight.
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.command(mav.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7) == 0
+    assert c0.wait("LOCAL_POSITION_NED", lambda m: m.z < -2.3, timeout=10) is not None
+    assert c0.command(mav.MAV_CMD_CONDITION_YAW, 90, 30, 1, 0) == 0  # absolute: local NED yaw 90 deg
+    assert c0.wait("ATTITUDE", lambda m: abs(m.yaw - math.pi / 2) < 0.05, timeout=10) is not None
+    assert c0.command(mav.MAV_CMD_DO_CHANGE_SPEED, 1, 0.5) == 0
+    assert sim.vehicle(0).fc.cruise_speed == 0.5
