@@ -184,3 +184,18 @@ def test_crash_disarms(house):
     assert not v.fc.armed
     assert any("Crash" in text for _, text in v.fc.messages)
     assert sim.true_pose(0)[0][2] < 0.3  # it fell
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["maze", "hospital"])
+def test_long_builtin_routes_fly_clean(name):
+    world = build_world(name, seed=2)
+    sim = Simulation(world, 2, seed=2, mavlink=False, camera=None, route="builtin")
+    for _ in range(300):
+        sim.step(1.0)
+        if all(sim.route_finished(i) for i in range(2)):
+            break
+    for i in range(2):
+        assert sim.route_finished(i), (name, i)
+        tilt = [quat_to_mat(q)[2, 2] for q in sim.trajectory(i)[:, 4:8]]
+        assert min(tilt) > math.cos(math.radians(25))  # no knocks against door frames or walls
