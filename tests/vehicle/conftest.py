@@ -19,10 +19,10 @@ if (
     importlib.import_module("firmware_sim")
     sys.path.remove(_ROOT)
 
-_PORTS = itertools.count(15100 + (os.getpid() % 4) * 25)
+_PORTS = itertools.count(15100 + (os.getpid() % 2) * 50, 2)  # two ports per test (multi-vehicle)
 
 
 @pytest.fixture
 def udp_port() -> int:
-    """A fresh loopback UDP port in this engineer's range for one test."""
+    """A fresh loopback UDP port (and the one after it) in this engineer's range, for one test."""
     return next(_PORTS)
