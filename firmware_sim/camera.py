@@ -82,6 +82,12 @@ class DepthCamera:
 
     def render_depth(self, data: mujoco.MjData) -> np.ndarray:
         """Depth (metres, NaN = no return) as an (h, w) array for the body's current pose."""
+        self._cast(data)
+        depth = np.where(self.dist >= 0, self.dist, np.nan).reshape(self.cfg.height, self.cfg.width)
+        return self._corrupt(depth)
+
+    def _cast(self, data: mujoco.MjData) -> None:
+        """One mj_multiRay call: self.dist gets each pixel's depth, -1 where nothing is hit."""
         rot = data.xmat[self.body_id].reshape(3, 3)
         origin = data.xpos[self.body_id] + rot @ np.asarray(self.cfg.offset_body)
         vec = (self.rays_cam @ rot.T).reshape(-1)
@@ -99,8 +105,6 @@ class DepthCamera:
             self.n,
             self.cutoff,
         )
-        depth = np.where(self.dist >= 0, self.dist, np.nan).reshape(self.cfg.height, self.cfg.width)
-        return self._corrupt(depth)
 
     def _corrupt(self, depth: np.ndarray) -> np.ndarray:
         """Apply the configured range noise and dropouts (seeded)."""
@@ -114,7 +118,14 @@ class DepthCamera:
     def render_z16(self, data: mujoco.MjData) -> np.ndarray:
         """Render and quantise to the z16 wire encoding."""
         self.frames += 1
-        return depth_to_z16(self.render_depth(data), self.cfg)
+        cfg = self.cfg
+        if cfg.noise_sigma_m > 0 or cfg.dropout > 0:
+            return depth_to_z16(self.render_depth(data), cfg)
+        self._cast(data)  # clean fast path: no NaN round trip
+        d = self.dist
+        valid = (d >= cfg.min_m) & (d <= cfg.max_m)
+        out = np.rint(np.where(valid, d, 0.0) / cfg.scale).astype("<u2")
+        return out.reshape(cfg.height, cfg.width)
 
     def header(self, seq: int, t_us: int) -> dict:
         """The camera-protocol header of a frame (see docs/camera-protocol.md)."""

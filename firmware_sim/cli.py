@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 
@@ -37,7 +40,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="odometry frame: each vehicle's start pose (default) or the shared world frame",
     )
     p.add_argument("--mavlink-port", type=int, default=14540, help="vehicle i sends to 127.0.0.1:PORT+i")
-    p.add_argument("--camera-dir", default=None, help="directory for camera<i>.sock Unix sockets")
+    p.add_argument(
+        "--camera-dir",
+        default=None,
+        help="directory for camera<i>.sock Unix sockets (default: a fresh temporary directory)",
+    )
     p.add_argument(
         "--camera-tcp-port", type=int, default=None, help="also serve camera i on 127.0.0.1:PORT+i"
     )
@@ -98,6 +105,9 @@ def main(argv: list[str] | None = None) -> int:
         cam = camera_config(a)
         world = build_world(a.world, a.seed, a.size)
         poses = parse_start_poses(a.start_poses)
+        own_dir = None
+        if a.camera_dir is None and cam is not None:
+            own_dir = a.camera_dir = tempfile.mkdtemp(prefix="coopd-sim-")
         sim = Simulation(
             world,
             a.vehicles,
@@ -131,11 +141,15 @@ def main(argv: list[str] | None = None) -> int:
             stop.wait(0.2)
     finally:
         sim.stop()
+        if own_dir is not None:
+            with contextlib.suppress(OSError):
+                os.rmdir(own_dir)
     wall = time.monotonic() - wall0
     stats = {
         "sim_time_s": round(sim.time, 3),
         "wall_s": round(wall, 3),
         "real_time_factor": round(sim.time / wall, 3) if wall > 0 else None,
+        "pacing_resets": sim.lag_resets,
         "mavlink": [dict(v.link.stats) if v.link else {} for v in sim.vehicles],
         "camera_frames_dropped": [v.publisher.frames_dropped if v.publisher else 0 for v in sim.vehicles],
     }

@@ -76,30 +76,38 @@ def _cross(a: Vec, b: Vec) -> tuple[float, float, float]:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def desired_rotation(force: Vec, yaw: float) -> Mat:
-    """Rotation (body FLU in ENU, rows) whose z axis is along the force and whose heading is yaw."""
+def attitude_torque(
+    r: Mat, force: Vec, yaw_sp: float, omega_body: Vec, airframe: Airframe, gains: Gains
+) -> tuple:
+    """Attitude PD-loop, tilt first (PX4-style reduced attitude) then heading: body torque (N m).
+
+    The tilt error is the rotation taking the body z axis onto the desired thrust direction, valid for
+    any tilt; the heading error drives the body z axis alone and never flips the tilt loop's sign,
+    so the vehicle recovers even after a collision has spun it round.
+    """
     fx, fy, fz = force
-    n = max(1e-9, math.sqrt(fx * fx + fy * fy + fz * fz))
-    z = (fx / n, fy / n, fz / n)
-    y = _cross(z, (math.cos(yaw), math.sin(yaw), 0.0))
-    ny = max(1e-9, math.sqrt(y[0] ** 2 + y[1] ** 2 + y[2] ** 2))
-    y = (y[0] / ny, y[1] / ny, y[2] / ny)
-    x = _cross(y, z)
-    return [[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]]
-
-
-def attitude_torque(r: Mat, r_des: Mat, omega_body: Vec, airframe: Airframe, gains: Gains) -> tuple:
-    """Geometric attitude PD-loop on SO(3): body torque (N m), saturated per axis."""
-
-    def m(i: int, j: int) -> float:  # (r_des^T r)[i][j]
-        return r_des[0][i] * r[0][j] + r_des[1][i] * r[1][j] + r_des[2][i] * r[2][j]
-
-    e = (0.5 * (m(2, 1) - m(1, 2)), 0.5 * (m(0, 2) - m(2, 0)), 0.5 * (m(1, 0) - m(0, 1)))
+    n = math.sqrt(fx * fx + fy * fy + fz * fz)
+    zd = (0.0, 0.0, 1.0) if n < 1e-9 else (fx / n, fy / n, fz / n)
+    z = (r[0][2], r[1][2], r[2][2])
+    axis = _cross(z, zd)
+    s = math.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
+    c = z[0] * zd[0] + z[1] * zd[1] + z[2] * zd[2]
+    angle = math.atan2(s, c)
+    if s > 1e-9:
+        e_w = [axis[0] / s * angle, axis[1] / s * angle, axis[2] / s * angle]
+    else:
+        e_w = [0.0, 0.0, 0.0] if c > 0 else [angle, 0.0, 0.0]
+    e_b = [r[0][k] * e_w[0] + r[1][k] * e_w[1] + r[2][k] * e_w[2] for k in range(3)]  # R^T e_w
+    heading = math.atan2(r[1][0], r[0][0])
+    e_yaw = (yaw_sp - heading + math.pi) % (2 * math.pi) - math.pi
+    # Heading acts on the body z axis only, with its own gain, and not while tipped over: a large
+    # heading error must never leak into roll and pitch.
+    e_b[2] += e_yaw * max(0.0, z[2])
     wn2 = (gains.att_p**2, gains.att_p**2, gains.yaw_p**2)
     damp = (1.8 * gains.att_p, 1.8 * gains.att_p, 2.0 * gains.yaw_p)
     out = []
     for k in range(3):
-        tau = -airframe.inertia[k] * (wn2[k] * e[k] + damp[k] * omega_body[k])
+        tau = airframe.inertia[k] * (wn2[k] * e_b[k] - damp[k] * omega_body[k])
         out.append(min(max(tau, -airframe.max_torque[k]), airframe.max_torque[k]))
     return tuple(out)
 

@@ -163,6 +163,8 @@ class FlightController:
         """Descend where the vehicle is and disarm on touchdown."""
         if not self.armed:
             return 2
+        if self.last_state is not None:  # land where it is now, not at an older hold point
+            self.hold = Setpoint(pos=self.last_state.pos.copy(), yaw=self.yaw_sp)
         self._set_mode(MAIN_AUTO, SUB_LAND, t)
         self.slow_since = None
         return 0
@@ -378,8 +380,7 @@ class FlightController:
             min(2.0, max(-2.0, self.vel_integral[k] + (vel_sp[k] - vel[k]) * dt)) for k in range(3)
         ]
         force = control.thrust_vector(vel, vel_sp, self.vel_integral, self.airframe, g)
-        r_des = control.desired_rotation(force, self.yaw_sp)
-        torque = control.attitude_torque(rot, r_des, omega, self.airframe, g)
+        torque = control.attitude_torque(rot, force, self.yaw_sp, omega, self.airframe, g)
         thrust = control.collective_thrust(force, rot)
         self.last_force = np.array([thrust * rot[0][2], thrust * rot[1][2], thrust * rot[2][2]])
         return self.last_force, np.array(torque)

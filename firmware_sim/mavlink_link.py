@@ -86,8 +86,8 @@ class _Writer:
 
 
 def ned_to_enu(v) -> np.ndarray:
-    """NED vector to the ENU-like reporting frame (the same swap both ways)."""
-    return ENU_TO_NED @ np.asarray(v, float)
+    """NED vector to the ENU-like reporting frame by swapping, so unset (NaN) components stay apart."""
+    return np.array([v[1], v[0], -v[2]], dtype=float)
 
 
 class MavlinkLink:
@@ -505,7 +505,8 @@ class MavlinkLink:
         if frame in (mav.MAV_FRAME_BODY_NED, mav.MAV_FRAME_BODY_OFFSET_NED):
             c, sn = math.cos(yaw_now), math.sin(yaw_now)
             rz = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
-            pos, vel = here + rz @ np.nan_to_num(pos) if np.isfinite(pos).any() else pos, rz @ vel
+            pos, vel = _rotate_keeping_unset(rz, pos), _rotate_keeping_unset(rz, vel)
+            pos = here + np.nan_to_num(pos) if np.isfinite(pos).any() else pos
         elif frame == mav.MAV_FRAME_LOCAL_OFFSET_NED:
             pos = here + np.nan_to_num(pos) if np.isfinite(pos).any() else pos
         elif frame != mav.MAV_FRAME_LOCAL_NED:
@@ -676,6 +677,16 @@ class MavlinkLink:
             yaw_ned = euler_zyx(enu_flu_to_ned_frd(fc.last_state.rot))[2] + direction * yaw_ned
         fc.hold.yaw = wrap_pi(math.pi / 2 - yaw_ned)
         return mav.MAV_RESULT_ACCEPTED
+
+
+def _rotate_keeping_unset(rz: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate a body-frame vector about z; unset (NaN) components stay unset, horizontal as a pair."""
+    out = rz @ np.nan_to_num(v)
+    if np.isnan(v[:2]).all():
+        out[:2] = math.nan
+    if math.isnan(v[2]):
+        out[2] = math.nan
+    return out
 
 
 def _param_name(raw) -> str:

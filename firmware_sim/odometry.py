@@ -20,9 +20,9 @@ class NoiseConfig:
     pos_sigma_m: float = 0.01
     vel_sigma_m_s: float = 0.02
     att_sigma_rad: float = 0.003
-    drift_xy_m_s: float = 0.002
+    drift_xy_m_s: float = 0.001
     drift_z_m_s: float = 0.001
-    drift_yaw_rad_s: float = 0.0002
+    drift_yaw_rad_s: float = 0.0001
 
 
 NOISE_PRESETS = {

@@ -33,6 +33,7 @@ PHYSICS_DT = 0.004
 CONTROL_EVERY = 2
 TRAJECTORY_EVERY = 10
 MAX_STEPS_PER_BATCH = 25
+MAX_LAG_WALL_S = 0.25  # behind real time x speed by more than this: re-anchor the pacing
 DEFAULT_CAMERA = CameraConfig()
 
 
@@ -141,7 +142,8 @@ class Simulation:
         self.frame_sink = None  # optional callable(vehicle_index, header, z16) for in-process consumers
         self._running = False
         self.wall_started = 0.0
-        self.lag_s = 0.0
+        self.lag_s = 0.0  # wall seconds behind the requested pace at the last check
+        self.lag_resets = 0  # times the pacing gave up catching up (machine too slow for --speed)
         self.vehicles: list[Vehicle] = []
         root = np.random.SeedSequence(self.seed)
         for i, ss in enumerate(root.spawn(n_vehicles)):
@@ -303,7 +305,7 @@ class Simulation:
             return
         with self._render_cv:
             # Back-pressure, not drops: the camera always produces its frames; if rendering is the
-            # bottleneck the simulated clock runs slower than asked (visible as lag_s).
+            # bottleneck the simulated clock runs slower than asked (visible as lag_s, lag_resets).
             while len(self._render_jobs) >= len(self.vehicles) and self._running:
                 self._render_cv.wait(0.05)
             self._render_jobs.append((v.index, seq, t_us, self.data.qpos.copy()))
@@ -390,6 +392,10 @@ class Simulation:
                     self._step_once()
                 n += 1
             self.lag_s = max(0.0, target - self.time) / self.speed
+            if self.lag_s > MAX_LAG_WALL_S:
+                # Too far behind to catch up smoothly: forget the debt instead of bursting later.
+                wall0, sim0, target = time.monotonic(), self.time, self.time
+                self.lag_resets += 1
             wait = (self.time + PHYSICS_DT - target) / self.speed
             self._service_io(min(0.01, max(0.0, wait)))
 

@@ -406,8 +406,8 @@ def _hospital(seed: int, size) -> World:
     b = _Builder()
     b.floor(X, Y)
     b.outer_walls(X, Y, H, thick=0.15)
-    south_doors = [(room_w * (i + 0.5) + float(rng.uniform(-1.0, 1.0)), 1.2) for i in range(n)]
-    north_doors = [(room_w * (i + 0.5) + float(rng.uniform(-1.0, 1.0)), 1.2) for i in range(n)]
+    south_doors = [(room_w * (i + 0.5) + float(rng.uniform(-1.0, 1.0)), 1.4) for i in range(n)]
+    north_doors = [(room_w * (i + 0.5) + float(rng.uniform(-1.0, 1.0)), 1.4) for i in range(n)]
     b.wall((0, yc0), (X, yc0), H, thick=0.15, doors=south_doors)
     b.wall((0, yc1), (X, yc1), H, thick=0.15, doors=north_doors)
     for i in range(1, n):

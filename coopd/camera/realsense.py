@@ -30,7 +30,8 @@ def load_pyrealsense2():
     except ImportError as e:
         raise CameraUnavailable(
             "RealSense source needs the pyrealsense2 module, which is not installed "
-            "(pip install pyrealsense2, or use the camera socket protocol with a driver adapter)"
+            "(pip install 'coopd[realsense]' or pyrealsense2; "
+            "or use the camera socket protocol with a driver adapter)"
         ) from e
     return rs
 

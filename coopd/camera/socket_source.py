@@ -165,6 +165,11 @@ class SocketDepthSource:
             self.counters["protocol_" + e.reason] += 1
             log.warning("camera %s broke the protocol (%s); dropping the connection", self.config.address, e)
             return "protocol_error"
+        except Exception:  # a bug of ours must not kill the camera thread: count, log, reconnect
+            self.counters["internal_errors"] += 1
+            if self.counters["internal_errors"] <= 3:
+                log.exception("camera %s: unexpected error while reading; reconnecting", self.config.address)
+            return "internal_error"
 
     def _recv_exact(self, buf: memoryview, deadline: float = float("inf")) -> None:
         """Fill buf completely; a gap of stall_timeout_s without bytes, EOF or stop ends the connection."""

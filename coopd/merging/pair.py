@@ -6,10 +6,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import rotation_angle_deg
-from ..grid import OccupancyGrid
+from ..geometry import invert, rotation_angle_deg
+from ..grid import OccupancyGrid, transform_grid
 from . import yaw_search
 from .features import MapFeatures, extract
+from .level import level_transform
 from .matching import match
 from .mtm import euler_eq33
 from .params import MergeParams, coopd_params
@@ -61,6 +62,9 @@ class PreparedMap:
     summary: MapSummary
     tree: cKDTree | None = None
     features: MapFeatures | None = None
+    level: np.ndarray | None = None
+    """Rotation levelling the map (level.py) and the levelled grid the yaw search runs on."""
+    levelled: OccupancyGrid | None = None
 
 
 def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = None) -> PreparedMap:
@@ -70,12 +74,18 @@ def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = Non
     summary = summarise(grid, params.occupied_threshold, params.validation_max_points)
     tree = cKDTree(summary.occupied_m) if params.refine and len(summary.occupied_m) else None
     tm["summarise"] = tm.get("summarise", 0.0) + time.perf_counter() - t0
+    level, levelled = None, grid
+    if params.search and params.level:
+        t0 = time.perf_counter()
+        level = level_transform(grid, params.occupied_threshold, params.level_max_tilt_deg)
+        levelled = grid if np.allclose(level, np.eye(4)) else transform_grid(grid, level)
+        tm["level"] = tm.get("level", 0.0) + time.perf_counter() - t0
     feats = None
     if params.hypotheses > 0:
         feats = extract(grid, params)
         for k, v in feats.timings.items():
             tm[k] = tm.get(k, 0.0) + v
-    return PreparedMap(grid, summary, tree, feats)
+    return PreparedMap(grid, summary, tree, feats, level, levelled)
 
 
 def _feature_candidates(a: PreparedMap, b: PreparedMap, params: MergeParams, tm: dict) -> list[Candidate]:
@@ -105,8 +115,10 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     cands: list[Candidate] = []
     if params.search:
         t0 = time.perf_counter()
-        found = yaw_search.search(a.grid, b.grid, params)[: params.search_candidates]
-        cands += [Candidate(t, 0, "search") for _, t in found]
+        la = a.level if a.level is not None else np.eye(4)
+        lb = b.level if b.level is not None else np.eye(4)
+        found = yaw_search.search(a.levelled, b.levelled, params)[: params.search_candidates]
+        cands += [Candidate(invert(la) @ t @ lb, 0, "search") for _, t in found]
         tm["search"] = time.perf_counter() - t0
     if params.hypotheses > 0:
         cands += _feature_candidates(a, b, params, tm)

@@ -59,6 +59,9 @@ class MergeParams:
     # --- gravity-aligned global search (coopd)
     search: bool = False
     """Propose hypotheses by the exhaustive yaw + shift search of yaw_search (needs gravity)."""
+    level: bool = True
+    """Level each map (level.py) before the search, so a few degrees of roll/pitch do not hide walls."""
+    level_max_tilt_deg: float = 5.0
     search_cell_m: float = 0.3
     search_yaw_step_deg: float = 2.0
     search_wall_cells: int = 3
@@ -84,7 +87,7 @@ class MergeParams:
     # --- validation (coopd; the thesis leaves it as future work)
     min_inliers: int = 5
     validation_max_points: int = 30000
-    min_score: float = 0.93
+    min_score: float = 0.96
     """Agreement of overlapping known cells: agree / (agree + occupied-vs-free conflicts)."""
     min_agreement: int = 600
     """Occupied cells of either map that land on the other's occupied surface."""

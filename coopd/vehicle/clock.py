@@ -17,6 +17,8 @@ WINDOW = 24
 MIN_SKEW_SPAN_S = 1.0
 SKEW_LIMITS = (0.5, 1000.0)  # FC seconds per local second; wide because the emulator runs at speed K
 TIMESYNC_PREFERRED_FOR_S = 5.0
+STEP_MIN_S = 0.005
+STEP_STREAK = 3
 
 
 @dataclass(frozen=True)
@@ -47,12 +49,14 @@ class ClockSync:
         self._source = "none"
         self._last_timesync_local = -math.inf
         self._estimate: ClockEstimate | None = None
+        self._off_streak = 0
         self._lock = threading.Lock()
         self.counters = {
             "timesync_replies": 0,
             "timesync_unmatched": 0,
             "timesync_rtt_rejected": 0,
             "system_time_samples": 0,
+            "fc_clock_steps": 0,
             "fc_clock_resets": 0,
         }
 
@@ -114,7 +118,8 @@ class ClockSync:
             return self._estimate
 
     def _add(self, local_s: float, fc_s: float, half_rtt: float) -> None:
-        """Add a sample and refit; an FC time far off the prediction means the FC clock restarted."""
+        """Add a sample and refit. An FC time far off the prediction means the FC clock restarted;
+        STEP_STREAK samples in a row off by more than the fit allows mean it stepped: refit on them."""
         est = self._estimate
         if est is not None and len(self._samples) >= 3:
             err = fc_s - est.fc_time(local_s)
@@ -122,8 +127,27 @@ class ClockSync:
                 self.counters["fc_clock_resets"] += 1
                 log.warning("FC clock jumped by %.3f s against the fit: clock estimate restarted", err)
                 self._samples.clear()
+                self._off_streak = 0
+            elif self._span() >= MIN_SKEW_SPAN_S and abs(err) > max(STEP_MIN_S, 5 * est.uncertainty_s):
+                self._off_streak += 1
+                if self._off_streak >= STEP_STREAK:
+                    self.counters["fc_clock_steps"] += 1
+                    log.warning(
+                        "FC clock stepped by %.1f ms against the fit: refitting on the newest samples",
+                        err * 1e3,
+                    )
+                    recent = list(self._samples)[-(STEP_STREAK - 1) :]
+                    self._samples.clear()
+                    self._samples.extend(recent)
+                    self._off_streak = 0
+            else:
+                self._off_streak = 0
         self._samples.append((local_s, fc_s, half_rtt))
         self._estimate = self._fit()
+
+    def _span(self) -> float:
+        """Local time covered by the window (the rate is fitted once this reaches MIN_SKEW_SPAN_S)."""
+        return self._samples[-1][0] - self._samples[0][0] if self._samples else 0.0
 
     def _fit(self) -> ClockEstimate:
         """Least-squares line through the best (lowest-RTT) half of the window; rate 1 until it spans 2 s."""

@@ -90,6 +90,8 @@ class VehicleLink:
         self.target_system = config.target_system
         self.state = "connecting"
         self.native_id: int | None = None
+        self._heartbeat_in_read = False
+        self.max_step_s = 0.0  # longest loop iteration: shows the thread never stalls
         self._last_heartbeat = -math.inf
         self._last_rx = -math.inf
         self._last_odometry = -math.inf
@@ -129,13 +131,15 @@ class VehicleLink:
             self.config.source_component,
         )
         while not self._stop.is_set():
+            t0 = time.monotonic()
             try:
-                self.step(time.monotonic())
+                self.step(t0)
             except Exception:  # a bug in a handler must not take the link down: count and log once a while
                 self.counters["loop_errors"] += 1
                 if self.counters["loop_errors"] <= 3:
                     log.exception("MAVLink link loop error (continuing)")
                 self._stop.wait(0.05)
+            self.max_step_s = max(self.max_step_s, time.monotonic() - t0)
 
     def step(self, now: float) -> None:
         """One iteration: (re)open if needed, read what arrived within READ_TIMEOUT_S, run timers."""
@@ -183,6 +187,7 @@ class VehicleLink:
             self.counters["rx_parse_errors"] += 1
             return
         from_fc = False
+        self._heartbeat_in_read = False
         for m in msgs[:MAX_MESSAGES_PER_READ]:
             if m.get_type() == "BAD_DATA":
                 self.counters["rx_bad_data"] += 1
@@ -191,7 +196,7 @@ class VehicleLink:
                 from_fc |= self._dispatch(m, now)
             except (ValueError, TypeError, AttributeError, OverflowError):
                 self.counters["rx_handler_errors"] += 1
-        if from_fc:
+        if from_fc and (self._heartbeat_in_read or self.transport.peer is None):
             self.transport.accept_source()
 
     def _reset_parser(self) -> None:
@@ -210,7 +215,10 @@ class VehicleLink:
         if kind == "HEARTBEAT" and self.target_system == 0 and self._is_autopilot(m):
             self.target_system = src
             log.info("locked onto autopilot system %d (component %d)", src, m.get_srcComponent())
-        if src != self.target_system or self.target_system == 0:
+        if self.target_system == 0:
+            self.counters["rx_before_lock"] += 1  # no autopilot heartbeat yet: nobody to follow
+            return False
+        if src != self.target_system:
             self.counters["rx_foreign"] += 1
             return False
         self.counters["rx_messages"] += 1
@@ -220,6 +228,7 @@ class VehicleLink:
         if kind == "HEARTBEAT":
             if self._is_autopilot(m):
                 self._last_heartbeat = now
+                self._heartbeat_in_read = True  # the FC's address may move only with its heartbeat
         elif kind == "ODOMETRY":
             self._last_odometry_msg = now
             self._take_pose(m.time_usec * 1e-6, lambda: self.odometry.from_odometry(m), now)
@@ -396,5 +405,6 @@ class VehicleLink:
                 "source": est.source,
             },
             "thread_native_id": self.native_id,
+            "max_loop_s": round(self.max_step_s, 4),
             "counters": counters,
         }

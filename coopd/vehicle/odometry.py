@@ -17,6 +17,8 @@ log = logging.getLogger("coopd.vehicle")
 MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_LOCAL_FRD = 20
 MAV_FRAME_BODY_FRD = 12
+MAV_FRAME_BODY_NED = 8  # what PX4 <= 1.12 put in child_frame_id for "the body frame"
+BODY_FRAMES = (MAV_FRAME_BODY_FRD, MAV_FRAME_BODY_NED, 0)
 NED_LIKE_FRAMES = (MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_FRD)
 ATTITUDE_PAIRING_S = 0.05
 
@@ -53,7 +55,7 @@ class OdometryTracker:
 
     def from_odometry(self, m) -> PoseSample | None:
         """An ODOMETRY message (pose in frame_id, attitude of child_frame_id) to a sample, or None."""
-        if m.frame_id not in NED_LIKE_FRAMES or m.child_frame_id not in (MAV_FRAME_BODY_FRD, 0):
+        if m.frame_id not in NED_LIKE_FRAMES or m.child_frame_id not in BODY_FRAMES:
             return self._reject("unsupported_frame")
         if getattr(m, "quality", 0) < 0:
             return self._reject("estimator_failed")

@@ -52,7 +52,7 @@ class Transport:
     def __init__(self, endpoint: Endpoint):
         self.endpoint = endpoint
         self.datagrams = endpoint.kind in ("udpin", "udpout")  # each read holds whole MAVLink packets
-        self.counters = {"tx_dropped": 0, "rx_errors": 0, "reopens": 0}
+        self.counters = {"tx_dropped": 0, "rx_errors": 0, "reopens": 0, "peer_changes": 0}
 
     @property
     def is_open(self) -> bool:
@@ -63,6 +63,8 @@ class Transport:
 
     def read(self, timeout: float) -> bytes:
         raise NotImplementedError
+
+    peer = None
 
     def accept_source(self) -> None:
         """The last read held valid traffic from the FC (only datagram servers care)."""
@@ -135,11 +137,14 @@ class SocketTransport(Transport):
             return b""
 
     def accept_source(self) -> None:
-        """udpin: reply to whoever sent the last datagram; called only once it held valid FC traffic,
-        so a stranger sending bytes to our port cannot divert our replies."""
+        """udpin: reply to whoever sent the last datagram. The link calls this for the first valid FC
+        message and then only for the FC's heartbeats, so a stranger's bytes cannot divert our replies
+        (one that spoofs the FC's heartbeat can, until the FC's next one: MAVLink without signing)."""
         if self.endpoint.kind == "udpin" and self.last_source is not None and self.last_source != self.peer:
             if self.peer is not None:
-                log.warning("MAVLink peer moved from %s:%d to %s:%d", *self.peer, *self.last_source)
+                self.counters["peer_changes"] += 1
+                if self.counters["peer_changes"] <= 5:
+                    log.warning("MAVLink peer moved from %s:%d to %s:%d", *self.peer, *self.last_source)
             self.peer = self.last_source
 
     def write(self, data: bytes) -> None:

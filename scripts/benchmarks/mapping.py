@@ -18,11 +18,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
-
-from synthetic_scenes import render_depth, room_scene, survey_poses  # noqa: E402
+sys.path.insert(0, str(ROOT))
 
 from coopd.mapping import Intrinsics, Mapper, MapperConfig  # noqa: E402
+from tests.synthetic_scenes import render_depth, room_scene, survey_poses  # noqa: E402
 
 RES, MIN_R, MAX_R = 0.1, 0.2, 5.0
 
@@ -98,9 +97,8 @@ def time_octomap(frames, intr, omp_threads, passes):
 
 def jit_times():
     """Seconds to import and map one small frame: cold (empty numba cache) and warm (cache filled)."""
-    paths = [str(ROOT), str(ROOT / "tests")]
-    code = (f"import time; t=time.perf_counter(); import sys; sys.path[:0]={paths!r};"
-            "from synthetic_scenes import *; from coopd.mapping import *;"
+    code = (f"import time; t=time.perf_counter(); import sys; sys.path.insert(0, {str(ROOT)!r});"
+            "from tests.synthetic_scenes import *; from coopd.mapping import *;"
             "i=Intrinsics.from_fov(32,24,87.0); p=survey_poses(1,1)[0];"
             "d=render_depth(room_scene(0), i, p); Mapper().integrate(d, i, p);"
             "print(time.perf_counter()-t)")

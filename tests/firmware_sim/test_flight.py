@@ -148,3 +148,54 @@ def test_vehicle_handles_expose_truth(house):
     np.testing.assert_allclose(p[:2], sim.vehicle(1).true_start_pose[:2], atol=1e-3)
     assert sim.vehicle(1).true_trajectory().shape[1] == 8
     assert sim.vehicle(1).mavlink_endpoint is None
+
+
+def test_preflight_auto_disarm_and_hold_modes(house):
+    from firmware_sim.flight import MAIN_POSCTL
+
+    sim = Simulation(house, 1, seed=0, mavlink=False, camera=None, noise="none")
+    v = sim.vehicle(0)
+    sim.step(0.1)
+    v.fc.arm(sim.time)
+    sim.step(9.0)
+    assert v.fc.armed  # still within COM_DISARM_PRFLT
+    sim.step(2.0)
+    assert not v.fc.armed  # armed on the ground for > 10 s without taking off
+    v.fc.arm(sim.time)
+    v.fc.takeoff(sim.time, 1.0)
+    sim.step(4.0)
+    assert v.fc.set_mode(MAIN_POSCTL, 0, sim.time) == 0  # no sticks: holds position
+    p0 = sim.true_pose(0)[0]
+    sim.step(3.0)
+    assert np.linalg.norm(sim.true_pose(0)[0] - p0) < 0.05
+    assert v.fc.set_mode(42, 0, sim.time) == 3
+
+
+def test_crash_disarms(house):
+    sim = Simulation(house, 1, seed=0, mavlink=False, camera=None, noise="none")
+    v = sim.vehicle(0)
+    sim.step(0.1)
+    v.fc.arm(sim.time)
+    v.fc.takeoff(sim.time, 1.5)
+    sim.step(3.0)
+    with sim.lock:  # a violent knock: 30 rad/s of roll
+        sim.data.qvel[v.qvel_adr + 3] = 30.0
+    sim.step(3.0)
+    assert not v.fc.armed
+    assert any("Crash" in text for _, text in v.fc.messages)
+    assert sim.true_pose(0)[0][2] < 0.3  # it fell
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["maze", "hospital"])
+def test_long_builtin_routes_fly_clean(name):
+    world = build_world(name, seed=2)
+    sim = Simulation(world, 2, seed=2, mavlink=False, camera=None, route="builtin")
+    for _ in range(300):
+        sim.step(1.0)
+        if all(sim.route_finished(i) for i in range(2)):
+            break
+    for i in range(2):
+        assert sim.route_finished(i), (name, i)
+        tilt = [quat_to_mat(q)[2, 2] for q in sim.trajectory(i)[:, 4:8]]
+        assert min(tilt) > math.cos(math.radians(25))  # no knocks against door frames or walls

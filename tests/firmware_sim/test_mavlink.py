@@ -58,6 +58,11 @@ def test_identity_and_streams(sim_and_client):
     assert REQUIRED_STREAMS <= seen
     m = c0.wait("ATTITUDE")
     assert abs(m.time_boot_ms / 1000 - sim.time) < 0.5  # one simulated clock
+    assert abs(m.yaw) < 0.05 and abs(m.roll) < 0.05 and abs(m.pitch) < 0.05  # start frame: heading = x
+    q = c0.wait("ATTITUDE_QUATERNION")
+    assert q.q1 > 0.99
+    hb = c0.wait("EXTENDED_SYS_STATE")
+    assert hb.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
     odo = c0.wait("ODOMETRY")
     assert odo.frame_id == mav.MAV_FRAME_LOCAL_NED and odo.child_frame_id == mav.MAV_FRAME_BODY_FRD
     assert math.hypot(odo.x, odo.y) < 0.1  # reported frame starts at the start pose
@@ -200,3 +205,137 @@ def test_mission_upload_start_and_reached(sim_and_client):
     start = np.array(sim.vehicle(0).true_start_pose[:2])
     np.testing.assert_allclose(p[:2], start + [1.2, 1.0], atol=0.35)  # estimate drift + acceptance radius
     assert p[2] < 0.1
+
+
+def test_reposition_and_return_to_launch(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    home = c0.wait("HOME_POSITION")
+    lat0, lon0, alt0 = home.latitude * 1e-7, home.longitude * 1e-7, home.altitude * 1e-3
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt0 + 1.2) == 0
+    assert c0.wait("LOCAL_POSITION_NED", lambda m: m.z < -1.1, timeout=10) is not None
+    start = np.array(sim.vehicle(0).true_start_pose[:2])
+    lat = int(round((lat0 + math.degrees(1.0 / EARTH_RADIUS_M)) * 1e7))  # 1 m north = world +y
+    c0.drain()
+    c0.mav.command_int_send(
+        1,
+        1,
+        mav.MAV_FRAME_GLOBAL,
+        mav.MAV_CMD_DO_REPOSITION,
+        0,
+        0,
+        -1,
+        0,
+        0,
+        math.nan,
+        lat,
+        int(round(lon0 * 1e7)),
+        alt0 + 1.2,
+    )
+    ack = c0.wait("COMMAND_ACK", lambda m: m.command == mav.MAV_CMD_DO_REPOSITION)
+    assert ack is not None and ack.result == 0
+    deadline = time.monotonic() + 8
+    while time.monotonic() < deadline and np.linalg.norm(sim.true_pose(0)[0][:2] - start - [0, 1]) > 0.1:
+        time.sleep(0.1)
+    np.testing.assert_allclose(sim.true_pose(0)[0][:2], start + [0.0, 1.0], atol=0.15)
+    assert c0.command(mav.MAV_CMD_NAV_RETURN_TO_LAUNCH) == 0
+    assert c0.wait("HEARTBEAT", lambda m: not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED, 20) is not None
+    np.testing.assert_allclose(sim.true_pose(0)[0][:2], start, atol=0.35)
+
+
+def test_offboard_body_velocity_with_unset_vertical(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.command(mav.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7) == 0
+    assert c0.wait("LOCAL_POSITION_NED", lambda m: m.z < -2.3, timeout=10) is not None
+    z0 = sim.true_pose(0)[0][2]
+    start = sim.true_pose(0)[0][:2].copy()
+    ignore_all_but_vxy = 0b0000_1101_1110_0111  # vx, vy used; vz, position, accel, yaw rate ignored
+    deadline, acks = time.monotonic() + 4, []
+    sent_mode = False
+    while time.monotonic() < deadline:
+        c0.mav.set_position_target_local_ned_send(
+            0, 1, 1, mav.MAV_FRAME_BODY_NED, ignore_all_but_vxy, 0, 0, 0, 0.5, 0.0, math.nan, 0, 0, 0, 0.0, 0
+        )
+        if not sent_mode:
+            c0.mav.command_long_send(1, 1, mav.MAV_CMD_DO_SET_MODE, 0, 1, MAIN_OFFBOARD, 0, 0, 0, 0, 0)
+            sent_mode = True
+        acks += [m.result for m in c0.drain() if m.get_type() == "COMMAND_ACK"]
+        time.sleep(0.05)
+    assert acks == [0]
+    p = sim.true_pose(0)[0]
+    h = sim.vehicle(0).true_start_pose[3]
+    moved = p[:2] - start
+    assert moved @ [math.cos(h), math.sin(h)] > 2.0  # forward at 0.5 m/s for ~16 simulated seconds
+    assert abs(p[2] - z0) < 0.3  # unset vertical velocity: altitude held, not dropped
+
+
+def test_legacy_float_mission_in_local_ned(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    items = [  # (command, x, y, z) in the vehicle's local NED frame: x = initial heading, z down
+        (mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, -1.0),
+        (mav.MAV_CMD_NAV_WAYPOINT, 1.0, 0.0, -1.0),
+        (mav.MAV_CMD_NAV_WAYPOINT, 1.0, 0.5, -1.2),
+        (mav.MAV_CMD_NAV_LAND, 1.0, 0.5, 0.0),
+    ]
+    c0.drain()
+    c0.mav.mission_count_send(1, 1, len(items), 0)
+    deadline = time.monotonic() + 10
+    ack = None
+    while ack is None and time.monotonic() < deadline:
+        m = c0.conn.recv_match(type=["MISSION_REQUEST_INT", "MISSION_ACK"], blocking=True, timeout=0.5)
+        if m is None:
+            continue
+        if m.get_type() == "MISSION_ACK":
+            ack = m
+            break
+        cmd, x, y, z = items[m.seq]
+        c0.mav.mission_item_send(
+            1, 1, m.seq, mav.MAV_FRAME_LOCAL_NED, cmd, 0, 1, 0, 0, 0, math.nan, x, y, z, 0
+        )
+    assert ack is not None and ack.type == mav.MAV_MISSION_ACCEPTED
+    # Download it back: the same items (MISSION_ITEM_INT carries local x, y in 1e-4 m).
+    c0.mav.mission_request_list_send(1, 1, 0)
+    assert c0.wait("MISSION_COUNT").count == 4
+    c0.mav.mission_request_int_send(1, 1, 2, 0)
+    it = c0.wait("MISSION_ITEM_INT", lambda m: m.seq == 2)
+    assert (it.x, it.y, it.z, it.frame) == (10000, 5000, pytest.approx(-1.2), mav.MAV_FRAME_LOCAL_NED)
+    c0.mav.mission_ack_send(1, 1, mav.MAV_MISSION_ACCEPTED, 0)
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.set_mode(4, 4) == 0  # AUTO.MISSION by mode switch, as QGroundControl does
+    assert c0.wait("HEARTBEAT", lambda m: not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED, 25) is not None
+    h = sim.vehicle(0).true_start_pose[3]
+    fwd, right = np.array([math.cos(h), math.sin(h)]), np.array([math.sin(h), -math.cos(h)])
+    d = sim.true_pose(0)[0][:2] - np.array(sim.vehicle(0).true_start_pose[:2])
+    assert abs(d @ fwd - 1.0) < 0.35 and abs(d @ right - 0.5) < 0.35
+
+
+def test_interval_query_yaw_speed_and_mission_housekeeping(sim_and_client):
+    sim, (c0, _) = sim_and_client
+    assert c0.command(mav.MAV_CMD_GET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_ODOMETRY) == 0
+    iv = c0.wait("MESSAGE_INTERVAL", lambda m: m.message_id == mav.MAVLINK_MSG_ID_ODOMETRY)
+    assert iv is not None and iv.interval_us == pytest.approx(33333, abs=2)
+    # Mission housekeeping: upload, jump, clear.
+    rel = mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+    home = c0.wait("HOME_POSITION")
+    wp = {
+        "frame": rel,
+        "command": mav.MAV_CMD_NAV_WAYPOINT,
+        "x": home.latitude,
+        "y": home.longitude,
+        "z": 1.0,
+    }
+    assert c0.upload_mission([wp, wp, wp]) == mav.MAV_MISSION_ACCEPTED
+    c0.mav.mission_set_current_send(1, 1, 2)
+    assert c0.wait("MISSION_CURRENT", lambda m: m.seq == 2 and m.total == 3) is not None
+    c0.mav.mission_clear_all_send(1, 1, 0)
+    assert c0.wait("MISSION_ACK").type == mav.MAV_MISSION_ACCEPTED
+    assert sim.vehicle(0).fc.mission == []
+    # Heading and speed commands in flight.
+    assert c0.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert c0.command(mav.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7) == 0
+    assert c0.wait("LOCAL_POSITION_NED", lambda m: m.z < -2.3, timeout=10) is not None
+    assert c0.command(mav.MAV_CMD_CONDITION_YAW, 90, 30, 1, 0) == 0  # absolute: local NED yaw 90 deg
+    assert c0.wait("ATTITUDE", lambda m: abs(m.yaw - math.pi / 2) < 0.05, timeout=10) is not None
+    assert c0.command(mav.MAV_CMD_DO_CHANGE_SPEED, 1, 0.5) == 0
+    assert sim.vehicle(0).fc.cruise_speed == 0.5

@@ -92,11 +92,11 @@ def test_a_frame_slightly_ahead_of_odometry_waits_for_it(link):
     t0 = time.monotonic()
     a = assoc.associate(Frame(3, 10.15))
     timer.join()
-    assert a is not None and np.allclose(a.body_pose.position, [1.5, 0, 1]) and time.monotonic() - t0 < 0.4
+    assert a is not None and np.allclose(a.body_pose.position, [1.5, 0, 1]) and time.monotonic() - t0 < 0.45
 
 
 def test_waiting_is_bounded(link):
     assoc = FrameAssociator(link, max_wait_s=0.1)
     t0 = time.monotonic()
     assert assoc.associate(Frame(4, 10.3)) is None
-    assert 0.1 <= time.monotonic() - t0 < 0.3 and assoc.skipped["after_buffer"] == 1
+    assert 0.1 <= time.monotonic() - t0 < 0.6 and assoc.skipped["after_buffer"] == 1

@@ -1,9 +1,16 @@
 import numpy as np
 import pytest
-from synthetic_scenes import camera_pose, hit_keys, occupied_accuracy, render_depth, room_scene, survey_poses
 
 from coopd.grid import UNKNOWN
 from coopd.mapping import FrameRejected, Intrinsics, Mapper, MapperConfig, Pose
+from tests.synthetic_scenes import (
+    camera_pose,
+    hit_keys,
+    occupied_accuracy,
+    render_depth,
+    room_scene,
+    survey_poses,
+)
 
 INTR = Intrinsics.from_fov(160, 120, 87.0)
 
@@ -69,7 +76,7 @@ def test_shared_path_shortcut_is_exact(scene):
 
 def test_single_wall_geometry():
     """A camera 2 m in front of a wall: the wall cells are occupied, the space before it free."""
-    from synthetic_scenes import BoxScene
+    from tests.synthetic_scenes import BoxScene
     scene = BoxScene(np.array([[[2.0, -3.0, -3.0], [2.2, 3.0, 3.0]]]))
     pose = camera_pose([0.0, 0.0, 0.0], yaw=0.0)
     depth = render_depth(scene, INTR, pose)
@@ -84,7 +91,7 @@ def test_single_wall_geometry():
 
 
 def test_max_range_truncates_without_hits():
-    from synthetic_scenes import BoxScene
+    from tests.synthetic_scenes import BoxScene
     scene = BoxScene(np.array([[[8.0, -30.0, -30.0], [8.2, 30.0, 30.0]]]))
     pose = camera_pose([0.0, 0.0, 0.0], yaw=0.0)
     depth = render_depth(scene, INTR, pose)

@@ -56,3 +56,12 @@ def test_system_time_only_while_timesync_is_silent():
     feed(sync, offset=-5.0, rate=1.0, n=3, rng=np.random.default_rng(3), start=10.5)
     assert sync.estimate().source == "timesync"
     assert not sync.on_system_time(6_000, 11.5)  # TIMESYNC fresh: SYSTEM_TIME ignored
+
+
+def test_a_clock_step_is_followed_within_a_few_samples():
+    sync = ClockSync()
+    rng = np.random.default_rng(4)
+    feed(sync, offset=-95.0, rate=1.0, n=20, rng=rng, period=1.0)
+    feed(sync, offset=-95.3, rate=1.0, n=4, rng=rng, start=120.0, period=1.0)  # FC clock 0.3 s behind now
+    assert sync.counters["fc_clock_steps"] == 1 and sync.counters["fc_clock_resets"] == 0
+    assert abs(sync.estimate().fc_time(124.0) - (-95.3 + 124.0)) < 0.005

@@ -1,0 +1,31 @@
+import numpy as np
+
+from coopd.geometry import euler_to_matrix, rigid
+from coopd.grid import transform_grid
+from coopd.merging import yaw_search
+from coopd.merging.level import level_transform
+from coopd.merging.params import coopd_params
+
+
+def test_levelling_undoes_a_known_tilt(near_pair):
+    """level L maps the world's up, seen in the map frame, to +z: up_map = L^T z. Tilting the grid by
+    a known rotation must tilt the up vector found by the same rotation."""
+    z = np.array([0.0, 0.0, 1.0])
+    tilt = euler_to_matrix(np.radians(2.0), np.radians(-1.5), 0.0)
+    tilted = transform_grid(near_pair.a, rigid(tilt))
+    up_a = level_transform(near_pair.a, 50)[:3, :3].T @ z
+    up_t = level_transform(tilted, 50)[:3, :3].T @ z
+    ang = np.degrees(np.arccos(np.clip(up_t @ (tilt @ up_a), -1.0, 1.0)))
+    assert ang < 0.75
+
+
+def test_yaw_search_puts_the_true_alignment_first(near_pair):
+    found = yaw_search.search(near_pair.a, near_pair.b, coopd_params())
+    assert len(found) > 10
+    _, best = found[0]
+    truth = near_pair.a_from_b
+    # 4-DoF hypothesis on 0.3 m pixels and 2-degree steps; the tilt of the maps is left to refinement
+    yaw_err = abs(np.degrees(np.angle(np.exp(1j * (np.arctan2(best[1, 0], best[0, 0])
+                                                    - np.arctan2(truth[1, 0], truth[0, 0]))))))
+    assert yaw_err < 3.0
+    assert np.linalg.norm(best[:2, 3] - truth[:2, 3]) < 0.8
