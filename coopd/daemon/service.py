@@ -224,7 +224,7 @@ class Daemon:
         self._local_message: tuple[int, bytes] | None = None
         self._message_lock = threading.Lock()
         self._published_version = 0
-        self._saved_versions: dict[str, int] = {}
+        self._saved_versions: dict[str, int] = {"local": self.mapper.version}  # a resumed map is on disk
         self._origin_saved = self.link.odometry.origin_enu is not None
         self._next_checkpoint = time.monotonic() + (config.daemon.checkpoint_period_s or float("inf"))
         self._next_status = 0.0
