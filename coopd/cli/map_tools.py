@@ -32,6 +32,19 @@ def register(subparsers) -> None:
     _limit_args(conv)
     conv.set_defaults(handler=run_convert)
 
+    merge = sub.add_parser("merge", help="merge maps into the first one's frame (no GPS, no initial guess); "
+                                         "exit 3 when a map could not be merged")
+    merge.add_argument("files", type=Path, nargs="+",
+                       help="two or more .cmap files; the first is the reference")
+    merge.add_argument("-o", "--output", type=Path, required=True, help="the merged global map (.cmap)")
+    merge.add_argument("--json", action="store_true",
+                       help="print the report as JSON: per input after the first, accepted, transform "
+                            "(4x4 row-major, metres, into the first map's frame), inliers, score, seconds")
+    merge.add_argument("--variant", default="coopd", choices=["coopd", "thesis", "rigid", "features"],
+                       help="pipeline variant (default coopd; thesis = the thesis' own pipeline)")
+    _limit_args(merge)
+    merge.set_defaults(handler=run_merge)
+
 
 def _limit_args(p) -> None:
     p.add_argument("--max-cells", type=int, default=DecodeLimits.max_cells, help="refuse larger maps")
@@ -127,3 +140,29 @@ def run_convert(args) -> int:
         detail = f"{save_cmap(out, grid, meta, args.encoding)} bytes"
     print(f"wrote {out} ({detail})")
     return 0
+
+
+def run_merge(args) -> int:
+    """`coopctl map merge`: merge_all over the files, the global map saved, a report printed."""
+    from coopd.merging import VARIANTS, merge_files
+    from coopd.sharing.wire import MapMeta
+
+    if len(args.files) < 2:
+        raise ValueError("map merge needs at least two map files")
+    limits = _limits(args)
+    first_meta = load_cmap(args.files[0], limits)[1]
+
+    def save(grid, path):
+        save_cmap(path, grid, MapMeta(first_meta.vehicle_id, first_meta.version, first_meta.stamp))
+
+    report = merge_files(args.files, args.output, lambda path: load_cmap(path, limits)[0], save,
+                         VARIANTS[args.variant]())
+    if args.json:
+        print(json.dumps(report))
+    else:
+        for entry in report["maps"]:
+            verdict = "merged" if entry["accepted"] else f"not merged ({entry['reason']})"
+            print(f"{entry['path']}: {verdict}, score {entry['score']}, {entry['inliers']} inliers, "
+                  f"{entry['seconds']} s")
+        print(f"wrote {args.output}")
+    return 0 if all(e["accepted"] for e in report["maps"]) else 3
