@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .frames import frd_in_ned_to_flu_in_enu, ned_to_enu
-from .pose_buffer import PoseSample
+from .pose_buffer import PoseSample, slerp
 
 log = logging.getLogger("coopd.vehicle")
 
@@ -48,7 +48,7 @@ class OdometryTracker:
         self.counters: Counter = Counter()
         self._last: PoseSample | None = None
         self._rejected_in_row = 0
-        self._attitude: tuple[float, np.ndarray] | None = None
+        self._attitude: tuple[tuple[float, np.ndarray], ...] | None = None
         self._reset_counter: int | None = None
 
     # -- message entry points -------------------------------------------------------------------
@@ -70,16 +70,27 @@ class OdometryTracker:
         return self._accept(m.time_usec * 1e-6, (m.x, m.y, m.z), m.q)
 
     def on_attitude_quaternion(self, m) -> None:
-        """Remember the latest ATTITUDE_QUATERNION for the LOCAL_POSITION_NED fallback."""
-        self._attitude = (m.time_boot_ms * 1e-3, np.array([m.q1, m.q2, m.q3, m.q4], dtype=np.float64))
+        """Remember the last two ATTITUDE_QUATERNIONs for the LOCAL_POSITION_NED fallback."""
+        sample = (m.time_boot_ms * 1e-3, np.array([m.q1, m.q2, m.q3, m.q4], dtype=np.float64))
+        if self._attitude is not None and sample[0] <= self._attitude[-1][0]:
+            self._attitude = (sample,)        # time went back (or repeated): start over
+        else:
+            self._attitude = ((self._attitude or ())[-1:]) + (sample,)
 
     def from_local_position(self, m) -> PoseSample | None:
-        """LOCAL_POSITION_NED paired with an ATTITUDE_QUATERNION at (nearly) the same time."""
+        """LOCAL_POSITION_NED with the attitude at its timestamp: slerp between the last two
+        ATTITUDE_QUATERNIONs, carried on at the same rate for a position up to one attitude period
+        newer (the streams are not in step; the latest attitude alone lags by up to a period)."""
         t = m.time_boot_ms * 1e-3
-        if self._attitude is None or abs(self._attitude[0] - t) > ATTITUDE_PAIRING_S:
+        if self._attitude is None or abs(self._attitude[-1][0] - t) > ATTITUDE_PAIRING_S:
             self.counters["fallback_unpaired"] += 1
             return None
-        return self._accept(t, (m.x, m.y, m.z), self._attitude[1])
+        q = self._attitude[-1][1]
+        if len(self._attitude) == 2:
+            (t0, q0), (t1, q1) = self._attitude
+            if t1 - t0 <= 2 * ATTITUDE_PAIRING_S:
+                q = slerp(q0, q1, min(max((t - t0) / (t1 - t0), 0.0), 2.0))
+        return self._accept(t, (m.x, m.y, m.z), q)
 
     def restart_time_base(self) -> None:
         """The FC rebooted: forget the previous sample so its timestamps don't reject new ones."""
