@@ -28,9 +28,30 @@ def classify(cells: np.ndarray, threshold: int = OCCUPIED_THRESHOLD) -> np.ndarr
     return out
 
 
+def floor_and_ceiling_layers(cells: np.ndarray, threshold: int = OCCUPIED_THRESHOLD) -> np.ndarray:
+    """z indices of the floor and ceiling: layers in the lowest or highest quarter of the known
+    height band holding far more occupied cells than a typical layer (and their neighbours, for
+    a surface one cell thick that straddles two layers)."""
+    occupied = (cells >= threshold).sum(axis=(0, 1))
+    known = np.nonzero((cells != -1).any(axis=(0, 1)))[0]
+    if len(known) < 8:
+        return np.zeros(0, dtype=np.int64)
+    lo, hi = int(known[0]), int(known[-1])
+    typical = max(float(np.median(occupied[lo:hi + 1])), 1.0)
+    quarter = (hi - lo + 1) // 4
+    surfaces = [z for z in range(lo, hi + 1)
+                if occupied[z] > 4 * typical and (z < lo + quarter or z > hi - quarter)]
+    layers = {n for z in surfaces for n in (z - 1, z, z + 1) if lo <= n <= hi}
+    return np.array(sorted(layers), dtype=np.int64)
+
+
 def top_classes(grid: OccupancyGrid, threshold: int = OCCUPIED_THRESHOLD) -> np.ndarray:
-    """(m_x, m_y) classes seen from above: occupied if any cell of the column is, else free, …"""
+    """(m_x, m_y) classes seen from above, like a floor plan: occupied if any cell of the column
+    is (floor and ceiling left out, or every indoor column would be occupied), else free, …"""
     cells = grid.cells
+    skip = floor_and_ceiling_layers(cells, threshold)
+    if len(skip):
+        cells = np.delete(cells, skip, axis=2)
     out = np.zeros(grid.shape[:2], dtype=np.uint8)
     out[(cells == -2).any(axis=2)] = INACCESSIBLE
     out[((cells >= 0) & (cells < threshold)).any(axis=2)] = FREE
