@@ -1,0 +1,235 @@
+"""Camera socket client: reads framed z16 depth, validates it, keeps the newest, reconnects by itself."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import socket
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from .frame import DepthFrame
+from .protocol import ProtocolError, header_length, parse_header
+from .slot import LatestSlot
+
+log = logging.getLogger("coopd.camera")
+
+RECV_POLL_S = 0.1
+
+
+@dataclass(frozen=True)
+class SocketSourceConfig:
+    """Where the driver listens and how patient to be with it."""
+
+    address: str  # "/run/cam.sock", "unix:/run/cam.sock" or "tcp:127.0.0.1:5600"
+    max_payload_bytes: int = 8 * 1024 * 1024
+    connect_timeout_s: float = 1.0
+    stall_timeout_s: float = 2.0  # no byte for this long on an open connection: reconnect
+    frame_timeout_s: float = 5.0  # a started frame must complete within this (no byte-trickling driver)
+    backoff_s: tuple[float, float] = (0.1, 2.0)
+
+    def __post_init__(self):
+        if not isinstance(self.address, str) or not self.address:
+            raise ValueError("camera address must be a unix socket path or tcp:host:port")
+        if not (1 <= self.max_payload_bytes <= 256 * 1024 * 1024):
+            raise ValueError("max_payload_bytes must be within 1 B..256 MiB")
+        if not (
+            0 < self.stall_timeout_s <= 60
+            and 0 < self.connect_timeout_s <= 60
+            and 0 < self.frame_timeout_s <= 600
+        ):
+            raise ValueError("camera timeouts must be within (0, 60] s")
+
+
+class _Closed(Exception):
+    """The connection ended (EOF, reset, stall or stop); `reason` is a counter key."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+class SocketDepthSource:
+    """One thread per camera: connect, read frame after frame into a LatestSlot, reconnect with backoff."""
+
+    def __init__(self, config: SocketSourceConfig, slot: LatestSlot | None = None):
+        self.config = config
+        self.slot: LatestSlot[DepthFrame] = slot if slot is not None else LatestSlot()
+        self.counters: Counter = Counter()
+        self.connected = False
+        self.last_frame_local: float | None = None
+        self.native_id: int | None = None
+        self._last_seq: int | None = None
+        self._last_t_us: int | None = None
+        self._sock: socket.socket | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self.run, name="coopd-camera", daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+
+    def run(self) -> None:
+        """Connect/read/reconnect until stopped; every failure is counted, none escapes."""
+        self.native_id = threading.get_native_id()
+        backoff = self.config.backoff_s[0]
+        while not self._stop.is_set():
+            try:
+                self._connect()
+            except OSError as e:
+                self.counters["connect_failures"] += 1
+                if (
+                    self.counters["connect_failures"] in (1, 10, 100)
+                    or self.counters["connect_failures"] % 1000 == 0
+                ):
+                    log.warning(
+                        "camera %s not reachable (%s); retrying with backoff up to %.1f s",
+                        self.config.address,
+                        e,
+                        self.config.backoff_s[1],
+                    )
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, self.config.backoff_s[1])
+                continue
+            frames_before = self.counters["frames"]
+            reason = self._read_frames()
+            self._disconnect(reason)
+            if self.counters["frames"] > frames_before:
+                backoff = self.config.backoff_s[0]
+            else:
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, self.config.backoff_s[1])
+
+    def _connect(self) -> None:
+        addr = self.config.address
+        if addr.startswith("tcp:"):
+            host, _, port = addr[4:].rpartition(":")
+            if not port.isdigit():
+                raise OSError(f"bad tcp address {addr!r}")
+            s = socket.create_connection((host, int(port)), timeout=self.config.connect_timeout_s)
+        else:
+            path = addr[5:] if addr.startswith("unix:") else addr
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.settimeout(self.config.connect_timeout_s)
+            try:
+                s.connect(path)
+            except OSError:
+                s.close()
+                raise
+        s.settimeout(RECV_POLL_S)
+        self._sock = s
+        self.connected = True
+        self.counters["connects"] += 1
+        self._last_seq = self._last_t_us = None  # a restarted driver may restart its sequence and clock
+        log.info("camera connected: %s (connection #%d)", addr, self.counters["connects"])
+
+    def _disconnect(self, reason: str) -> None:
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.close()
+        self._sock = None
+        self.connected = False
+        self.counters["disconnect_" + reason] += 1
+        if reason != "stopped":
+            log.warning(
+                "camera %s disconnected (%s) after %d frames in total; reconnecting",
+                self.config.address,
+                reason,
+                self.counters["frames"],
+            )
+
+    # -- reading --------------------------------------------------------------------------------
+
+    def _read_frames(self) -> str:
+        """Read until the connection must end; returns the reason."""
+        try:
+            while True:
+                self._read_one()
+        except _Closed as c:
+            return c.reason
+        except ProtocolError as e:
+            self.counters["protocol_" + e.reason] += 1
+            log.warning("camera %s broke the protocol (%s); dropping the connection", self.config.address, e)
+            return "protocol_error"
+        except Exception:  # a bug of ours must not kill the camera thread: count, log, reconnect
+            self.counters["internal_errors"] += 1
+            if self.counters["internal_errors"] <= 3:
+                log.exception("camera %s: unexpected error while reading; reconnecting", self.config.address)
+            return "internal_error"
+
+    def _recv_exact(self, buf: memoryview, deadline: float = float("inf")) -> None:
+        """Fill buf completely; a gap of stall_timeout_s without bytes, EOF or stop ends the connection."""
+        got, last_byte = 0, time.monotonic()
+        while got < len(buf):
+            if self._stop.is_set():
+                raise _Closed("stopped")
+            try:
+                k = self._sock.recv_into(buf[got:], len(buf) - got)
+            except TimeoutError:
+                if time.monotonic() - last_byte > self.config.stall_timeout_s:
+                    raise _Closed("stall") from None
+                continue
+            except InterruptedError:
+                continue
+            except OSError:
+                raise _Closed("reset") from None
+            if k == 0:
+                raise _Closed("eof")
+            got += k
+            last_byte = time.monotonic()
+            if last_byte > deadline:
+                raise _Closed("slow_frame")
+
+    def _read_one(self) -> None:
+        prefix = bytearray(4)
+        self._recv_exact(memoryview(prefix))
+        deadline = time.monotonic() + self.config.frame_timeout_s
+        raw = bytearray(header_length(bytes(prefix)))
+        self._recv_exact(memoryview(raw), deadline)
+        header = parse_header(bytes(raw), self.config.max_payload_bytes)
+        payload = np.empty(header.n // 2, dtype="<u2")  # bounded by max_payload_bytes, checked above
+        self._recv_exact(memoryview(payload).cast("B"), deadline)
+        now = time.monotonic()
+        if self._last_t_us is not None and header.t_us <= self._last_t_us:
+            self.counters["dropped_timestamp_not_increasing"] += 1
+            return
+        if self._last_seq is not None and header.seq != self._last_seq + 1:
+            self.counters["seq_gaps"] += 1
+        self._last_seq, self._last_t_us = header.seq, header.t_us
+        # Wire order is little-endian; astype is a no-op on little-endian hosts, a swap elsewhere.
+        depth = payload.reshape(header.intrinsics.height, header.intrinsics.width).astype(
+            np.uint16, copy=False
+        )
+        frame = DepthFrame(
+            header.seq, header.t_us * 1e-6, depth, header.intrinsics, header.min_m, header.max_m, now
+        )
+        self.counters["frames"] += 1
+        self.last_frame_local = now
+        self.slot.put(frame)
+
+    def status(self) -> dict:
+        """Snapshot for status reports."""
+        age = None if self.last_frame_local is None else round(time.monotonic() - self.last_frame_local, 3)
+        c = dict(self.counters)
+        c["slot_dropped"] = self.slot.dropped
+        return {
+            "address": self.config.address,
+            "connected": self.connected,
+            "last_frame_age_s": age,
+            "thread_native_id": self.native_id,
+            "counters": c,
+        }

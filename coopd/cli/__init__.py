@@ -1,0 +1,1 @@
+"""Command-line tools: coopctl (offline map tools now; daemon control subcommands later)."""

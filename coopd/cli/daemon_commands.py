@@ -1,0 +1,318 @@
+"""`coopctl status|peers|merge-now|dump-map`: talk to a running coopd over its control socket.
+
+The daemon supplies plain data (see docs/operations.md, "Control protocol"); coopctl formats it.
+dump-map: the daemon streams the map's serialized message (the .cmap bytes) back over the socket
+and coopctl writes or converts it on its side, so the daemon never writes into the operator's
+directories and needs no write access outside its StateDirectory.
+"""
+
+import json
+import os
+import sys
+from pathlib import Path
+
+from coopd.daemon import control
+from coopd.daemon.control import DEFAULT_CONTROL_SOCKET
+
+# Map decoding and exports (numpy, numba kernels) load only when dump-map runs: status, peers and
+# merge-now start fast and need no numba cache directory.
+MAX_DUMP_BYTES = 512 * 1024 * 1024
+MAX_DUMP_CELLS = 400_000_000
+
+SOCKET_ENV = "COOPD_SOCKET"
+FORMATS = ("cmap", "ply", "png", "bt")
+MERGE_EXIT = {"done": 0, "queued": 0, "failed": 1, "deferred": 2}
+
+
+def register(subparsers) -> None:
+    """Add status, peers, merge-now and dump-map to coopctl."""
+    status = subparsers.add_parser("status", help="state of the running daemon")
+    status.add_argument("--json", action="store_true", help="print the daemon's status as one JSON object")
+    _socket_args(status)
+    status.set_defaults(handler=run_status)
+
+    peers = subparsers.add_parser("peers", help="peer vehicles the daemon knows")
+    peers.add_argument("--json", action="store_true", help="print one JSON object")
+    _socket_args(peers)
+    peers.set_defaults(handler=run_peers)
+
+    merge = subparsers.add_parser(
+        "merge-now", help="merge the maps now (exit 0 done/queued, 1 failed, 2 deferred)"
+    )
+    merge.add_argument("--json", action="store_true", help="print one JSON object")
+    _socket_args(merge, timeout=120.0)
+    merge.set_defaults(handler=run_merge_now)
+
+    dump = subparsers.add_parser(
+        "dump-map", help="save the local, global or a peer's map (.cmap, PLY, PNG, .bt)"
+    )
+    dump.add_argument(
+        "map",
+        nargs="?",
+        default="local",
+        help="local (default), global, or a peer's vehicle id (e.g. 3 or peer:3)",
+    )
+    dump.add_argument("-o", "--output", type=Path, required=True, help="file to write")
+    dump.add_argument(
+        "--to",
+        choices=FORMATS,
+        default=None,
+        help="output format (default: from the file suffix, .cmap if unknown)",
+    )
+    dump.add_argument(
+        "--z",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="png only: horizontal slice at this height instead of the top view",
+    )
+    dump.add_argument("--max-bytes", type=int, default=MAX_DUMP_BYTES, help="refuse larger maps")
+    dump.add_argument("--max-cells", type=int, default=MAX_DUMP_CELLS, help="refuse larger maps")
+    _socket_args(dump, timeout=60.0)
+    dump.set_defaults(handler=run_dump_map)
+
+
+def _socket_args(p, timeout: float = 10.0) -> None:
+    p.add_argument(
+        "--socket",
+        default=os.environ.get(SOCKET_ENV, DEFAULT_CONTROL_SOCKET),
+        help=f"control socket (default: ${SOCKET_ENV} or {DEFAULT_CONTROL_SOCKET})",
+    )
+    p.add_argument(
+        "--timeout", type=float, default=timeout, help=f"seconds to wait for the answer ({timeout:g})"
+    )
+
+
+def _call(args, cmd: str, cmd_args: dict | None = None, max_blob_bytes: int = 0):
+    """One request to the daemon; ControlError (an OSError) carries the operator's message."""
+    return control.request(args.socket, cmd, cmd_args, timeout_s=args.timeout, max_blob_bytes=max_blob_bytes)
+
+
+# ------------------------------------------------------------------------------------------ status
+def run_status(args) -> int:
+    result, _ = _call(args, "status")
+    print(json.dumps(result) if args.json else format_status(result))
+    return 0
+
+
+def format_status(s: dict) -> str:
+    """The human table of `coopctl status`; missing parts print as '-'."""
+    rows = [
+        (
+            "coopd",
+            f"vehicle {s.get('vehicle_id', '-')}, {s.get('state', '-')}, up {_duration(s.get('uptime_s'))}"
+            f" (pid {s.get('pid', '-')})",
+        )
+    ]
+    link = s.get("link") or {}
+    rows.append(
+        (
+            "link",
+            f"{link.get('state', '-')}"
+            + (f", last message {_num(link.get('age_s'), 2)} s ago" if link.get("age_s") is not None else ""),
+        )
+    )
+    pose = s.get("pose")
+    if pose:
+        x, y, z = (pose.get("position_m") or [None] * 3)[:3]
+        rows.append(
+            (
+                "pose",
+                f"x {_num(x, 2)}  y {_num(y, 2)}  z {_num(z, 2)} m, yaw {_num(pose.get('yaw_deg'), 1)} deg"
+                f" ({_num(pose.get('age_s'), 2)} s old)",
+            )
+        )
+    else:
+        rows.append(("pose", "-"))
+    m = s.get("map") or {}
+    if m:
+        shape = " x ".join(str(v) for v in m.get("shape", [])) or "-"
+        cells, known = m.get("cells"), m.get("known")
+        pct = f" ({100.0 * known / cells:.1f} %)" if cells and known is not None else ""
+        rows.append(
+            (
+                "map",
+                f"{shape} = {cells} cells at {m.get('resolution_m', '-')} m, {known} known{pct}, "
+                f"version {m.get('version', '-')}",
+            )
+        )
+    else:
+        rows.append(("map", "-"))
+    f = s.get("frames") or {}
+    rows.append(
+        (
+            "frames",
+            f"{f.get('in', '-')} in, {f.get('dropped', '-')} dropped, {f.get('rejected', '-')} rejected",
+        )
+    )
+    peers = s.get("peers")
+    if isinstance(peers, list):
+        rows.append(
+            ("peers", f"{len(peers)}" + (": " + ", ".join(_peer_short(p) for p in peers) if peers else ""))
+        )
+    else:
+        rows.append(("peers", "-"))
+    mg = s.get("merges") or {}
+    rows.append(
+        (
+            "merges",
+            f"{mg.get('done', '-')} done, {mg.get('failed', '-')} failed, {mg.get('deferred', '-')} deferred",
+        )
+    )
+    mem = s.get("memory") or {}
+    if mem:
+        entries = ", ".join(f"{k} {_mib(v)}" for k, v in (mem.get("entries") or {}).items())
+        rows.append(
+            (
+                "memory",
+                f"RSS {_mib(mem.get('rss_bytes'))} of {_mib(mem.get('budget_bytes'))} budget; "
+                f"grids {_mib(mem.get('reserved_bytes'))} reserved"
+                + (f" ({entries})" if entries else "")
+                + (f"; {mem['refused']} reservations refused" if mem.get("refused") else ""),
+            )
+        )
+    threads = s.get("threads") or []
+    for i, t in enumerate(threads):
+        mark = (
+            ""
+            if t.get("applied") == t.get("requested")
+            else f" (asked {t.get('requested')}: {t.get('note', '')})"
+        )
+        rows.append(
+            (
+                "threads" if i == 0 else "",
+                f"{t.get('role', '?'):<9} tid {t.get('tid', '-')}, nice {t.get('applied', '-')}{mark}",
+            )
+        )
+    c = s.get("control") or {}
+    if c:
+        rows.append(
+            (
+                "control",
+                f"{c.get('served', 0)} served, {c.get('bad_requests', 0)} bad, "
+                f"{c.get('oversize', 0)} oversize, {c.get('timeouts', 0)} timed out, "
+                f"{c.get('evicted', 0)} evicted",
+            )
+        )
+    cp = s.get("checkpoint") or {}
+    if cp:
+        rows.append(
+            (
+                "checkpoint",
+                f"{cp.get('saved', 0)} saved, {cp.get('failed', 0)} failed, "
+                f"{cp.get('set_aside', 0)} set aside; last {cp.get('last_path') or '-'}",
+            )
+        )
+    width = max(len(k) for k, _ in rows) + 2
+    return "\n".join(f"{k:<{width}}{v}" for k, v in rows)
+
+
+def _peer_short(p: dict) -> str:
+    return f"{p.get('vehicle_id', '?')} (v{p.get('map_version', '-')}, {_num(p.get('last_seen_s'), 1)} s ago)"
+
+
+def _num(v, digits: int) -> str:
+    return "-" if not isinstance(v, (int, float)) else f"{v:.{digits}f}"
+
+
+def _mib(v) -> str:
+    if not isinstance(v, (int, float)):
+        return "-"
+    return f"{v / 2**20:.1f} MiB" if abs(v) >= 2**20 or v == 0 else f"{v / 1024:.1f} KiB"
+
+
+def _duration(s) -> str:
+    if not isinstance(s, (int, float)):
+        return "-"
+    s = int(s)
+    d, rest = divmod(s, 86400)
+    h, rest = divmod(rest, 3600)
+    m, sec = divmod(rest, 60)
+    return (f"{d} d " if d else "") + (f"{h} h " if d or h else "") + f"{m} min {sec} s"
+
+
+# ------------------------------------------------------------------------------------- peers, merge
+def run_peers(args) -> int:
+    result, _ = _call(args, "peers")
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    peers = result.get("peers") or []
+    if not peers:
+        print("no peers")
+        return 0
+    print(
+        f"{'vehicle':>7}  {'address':<22} {'link':<6} {'map version':>11} {'map bytes':>10} {'last seen':>9}"
+    )
+    for p in peers:
+        print(
+            f"{p.get('vehicle_id', '?'):>7}  {str(p.get('address', '-')):<22} "
+            f"{'up' if p.get('connected') else 'down':<6} {p.get('map_version', '-'):>11} "
+            f"{p.get('map_bytes', '-'):>10} {_num(p.get('last_seen_s'), 1):>7} s"
+        )
+    return 0
+
+
+def run_merge_now(args) -> int:
+    result, _ = _call(args, "merge-now")
+    outcome = str(result.get("outcome", "done"))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"merge-now: {outcome}" + (f": {result['detail']}" if result.get("detail") else ""))
+    return MERGE_EXIT.get(outcome, 1)
+
+
+# ---------------------------------------------------------------------------------------- dump-map
+def map_request(which: str) -> dict:
+    """The dump-map request arguments for 'local', 'global', '3' or 'peer:3'."""
+    if which in ("local", "global"):
+        return {"map": which}
+    ident = which.removeprefix("peer:")
+    if not ident.isdigit():
+        raise ValueError(f"map must be local, global or a peer's vehicle id, not {which!r}")
+    return {"map": "peer", "vehicle_id": int(ident)}
+
+
+def output_format(path: Path, to: str | None) -> str:
+    if to:
+        return to
+    suffix = path.suffix.lower().lstrip(".")
+    return suffix if suffix in FORMATS else "cmap"
+
+
+def run_dump_map(args) -> int:
+    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
+    from coopd.io.atomic import write_atomic
+    from coopd.sharing.wire import DecodeLimits, decode_map
+
+    fmt = output_format(args.output, args.to)
+    if args.z is not None and fmt != "png":
+        raise ValueError("--z applies to png output only")
+    limits = DecodeLimits(max_cells=args.max_cells, max_bytes=args.max_bytes)
+    result, blob = _call(args, "dump-map", map_request(args.map), max_blob_bytes=limits.max_bytes)
+    if blob is None:
+        raise ValueError("the daemon sent no map")
+    grid, meta = decode_map(blob, limits)  # validates (CRC, size) before anything is written
+    out = args.output
+    if fmt == "cmap":
+        write_atomic(out, blob)
+        detail = f"{len(blob)} bytes"
+    elif fmt == "ply":
+        detail = f"{export_ply(grid, out)} occupied points"
+    elif fmt == "png":
+        if args.z is None:
+            export_png_top(grid, out)
+            detail = "top view"
+        else:
+            export_png_slice(grid, out, args.z)
+            detail = f"slice at z = {args.z} m"
+    else:
+        detail = f"{export_bt(grid, out)} bytes"
+    counts = grid.counts()
+    print(
+        f"wrote {out} ({detail}): {result.get('map', args.map)} map of vehicle {meta.vehicle_id}, "
+        f"version {meta.version}, {' x '.join(map(str, grid.shape))} cells, {counts.known} known",
+        file=sys.stdout,
+    )
+    return 0

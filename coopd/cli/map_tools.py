@@ -1,0 +1,129 @@
+"""`coopctl map info|convert`: offline tools on map files; no daemon needed."""
+
+import json
+from pathlib import Path
+
+from coopd.io import export_bt, export_ply, export_png_slice, export_png_top, load_cmap, save_cmap
+from coopd.io.cmap import read_cmap_bytes
+from coopd.sharing.wire import ENCODINGS, DecodeLimits, decode_map, peek
+
+FORMATS = ("ply", "png", "bt", "cmap")
+
+
+def register(subparsers) -> None:
+    """Add the `map` command group to coopctl."""
+    p = subparsers.add_parser("map", help="inspect and convert map files (.cmap)")
+    sub = p.add_subparsers(dest="map_command", metavar="SUBCOMMAND", required=True)
+
+    info = sub.add_parser("info", help="size, resolution, origin, cell counts, compression ratio")
+    info.add_argument("file", type=Path, help="a .cmap file (coopd or thesis map message)")
+    info.add_argument("--json", action="store_true", help="print one JSON object")
+    _limit_args(info)
+    info.set_defaults(handler=run_info)
+
+    conv = sub.add_parser("convert", help="export to PLY, PNG, OctoMap .bt, or re-encode as .cmap")
+    conv.add_argument("file", type=Path, help="a .cmap file")
+    conv.add_argument("--to", required=True, choices=FORMATS, help="output format")
+    conv.add_argument("--z", type=float, default=None, metavar="METRES",
+                      help="png only: horizontal slice at this height (map frame) instead of the top view")
+    conv.add_argument("-o", "--output", type=Path, default=None, help="output path (default: next to FILE)")
+    conv.add_argument("--encoding", default="default", choices=["default", *ENCODINGS],
+                      help="cmap only: payload encoding of the written message")
+    _limit_args(conv)
+    conv.set_defaults(handler=run_convert)
+
+
+def _limit_args(p) -> None:
+    p.add_argument("--max-cells", type=int, default=DecodeLimits.max_cells, help="refuse larger maps")
+    p.add_argument("--max-bytes", type=int, default=DecodeLimits.max_bytes, help="refuse larger files")
+
+
+def _limits(args) -> DecodeLimits:
+    return DecodeLimits(max_cells=args.max_cells, max_bytes=args.max_bytes)
+
+
+def map_info(path: Path, limits: DecodeLimits) -> dict:
+    """Everything `map info` reports about a map file, as plain data."""
+    data = read_cmap_bytes(path, limits)
+    header = peek(data)
+    grid, meta = decode_map(data, limits)
+    counts = grid.counts()
+    lo, hi = grid.bounds_m()
+    return {
+        "file": str(path),
+        "file_bytes": len(data),
+        "message_type": header.message_type,
+        "format_version": header.format_version,
+        "encoding": header.encoding,
+        "vehicle_id": meta.vehicle_id,
+        "map_version": meta.version,
+        "stamp": meta.stamp,
+        "shape": list(grid.shape),
+        "cells": grid.size,
+        "resolution_m": grid.resolution,
+        "origin_cells": [int(v) for v in grid.offset],
+        "origin_m": [float(v) * grid.resolution for v in grid.offset],
+        "extent_m": {"min": [float(v) for v in lo], "max": [float(v) for v in hi]},
+        "known": counts.known,
+        "occupied": counts.occupied,
+        "free": counts.free,
+        "inaccessible": counts.inaccessible,
+        "unknown": counts.unknown,
+        "compression_ratio": grid.size / len(data),
+    }
+
+
+def run_info(args) -> int:
+    info = map_info(args.file, _limits(args))
+    if args.json:
+        print(json.dumps(info))
+        return 0
+    known_pct = 100.0 * info["known"] / info["cells"]
+    lines = [
+        f"file            {info['file']} ({info['file_bytes']} bytes)",
+        f"message         type {info['message_type']} format {info['format_version']}, "
+        f"encoding {info['encoding']}",
+        f"vehicle         {info['vehicle_id']}, map version {info['map_version']}, stamp {info['stamp']}",
+        f"size            {' x '.join(map(str, info['shape']))} = {info['cells']} cells",
+        f"resolution      {info['resolution_m']} m",
+        f"origin          cell {tuple(info['origin_cells'])} at "
+        f"({', '.join(f'{v:.3f}' for v in info['origin_m'])}) m",
+        f"extent          ({', '.join(f'{v:.2f}' for v in info['extent_m']['min'])}) .. "
+        f"({', '.join(f'{v:.2f}' for v in info['extent_m']['max'])}) m",
+        f"known cells     {info['known']} ({known_pct:.2f} %): occupied {info['occupied']}, "
+        f"free {info['free']}, inaccessible {info['inaccessible']}",
+        f"compression     {info['compression_ratio']:.1f} : 1 (cells / file bytes)",
+    ]
+    print("\n".join(lines))
+    return 0
+
+
+def default_output(path: Path, fmt: str, z: float | None) -> Path:
+    if fmt == "png":
+        return path.with_name(f"{path.stem}_{'top' if z is None else f'z{z:g}m'}.png")
+    if fmt == "cmap":
+        return path.with_name(f"{path.stem}.converted.cmap")
+    return path.with_suffix(f".{fmt}")
+
+
+def run_convert(args) -> int:
+    if args.z is not None and args.to != "png":
+        raise ValueError("--z applies to --to png only")
+    grid, meta = load_cmap(args.file, _limits(args))
+    out = args.output or default_output(args.file, args.to, args.z)
+    if args.to == "ply":
+        n = export_ply(grid, out)
+        detail = f"{n} occupied points"
+    elif args.to == "png":
+        if args.z is None:
+            export_png_top(grid, out)
+            detail = "top view"
+        else:
+            export_png_slice(grid, out, args.z)
+            detail = f"slice at z = {args.z} m"
+    elif args.to == "bt":
+        detail = f"{export_bt(grid, out)} bytes"
+    else:
+        detail = f"{save_cmap(out, grid, meta, args.encoding)} bytes"
+    print(f"wrote {out} ({detail})")
+    return 0

@@ -1,0 +1,245 @@
+"""Checkpoints: maps saved atomically to the StateDirectory and resumed from on start.
+
+Each map has a name ("local", "global", "peer-5", ...) and numbered generations on disk:
+
+    /var/lib/coopd/local.0000000042.cmap     one coopd map message (wire format, CRC-32)
+
+A save writes the next generation with write_atomic (temp file, fsync, rename, fsync dir) and
+then prunes all but the newest `keep`; a failed save (ENOSPC, EIO, ...) is counted and logged,
+never fatal, and leaves the earlier generations untouched. load_latest() tries the newest
+generation first; one that is torn, corrupt, of the wrong type or oversized is renamed to
+`*.corrupt-<UTC time>` (kept for inspection, never loaded again) and the next older one is tried.
+"""
+
+import errno
+import logging
+import os
+import re
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from coopd.grid import OccupancyGrid
+from coopd.io import atomic
+from coopd.io.cmap import read_cmap_bytes
+from coopd.sharing.wire import (
+    DEFAULT_LIMITS,
+    MSG_COOPD_MAP,
+    DecodeLimits,
+    MapMeta,
+    WireError,
+    decode_map,
+    encode_map,
+    peek,
+)
+
+log = logging.getLogger("coopd.daemon")
+
+NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,63}")
+FILE = re.compile(r"(?P<name>[a-z0-9][a-z0-9_-]{0,63})\.(?P<seq>\d{10})\.cmap")
+TEMP = re.compile(r"\.[a-z0-9][a-z0-9_-]{0,63}\.\d{10}\.cmap\..+\.tmp")
+"""What write_atomic leaves behind when the process dies mid-write."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A loaded checkpoint."""
+
+    name: str
+    seq: int
+    path: Path
+    grid: OccupancyGrid
+    meta: MapMeta
+    size: int
+
+
+class CheckpointStore:
+    """Numbered, atomically written map checkpoints of one directory; see the module docstring."""
+
+    def __init__(
+        self, directory, keep: int = 3, limits: DecodeLimits = DEFAULT_LIMITS, encoding: str = "default"
+    ):
+        if keep < 1:
+            raise ValueError("keep must be >= 1")
+        self.directory = Path(directory)
+        self.keep = keep
+        self.limits = limits
+        self.encoding = encoding
+        self.saved = 0
+        self.failed = 0
+        self.set_aside = 0
+        self.temp_removed = 0
+        self.last_path: Path | None = None
+        self.last_save_time: float | None = None
+        self.last_error: str | None = None
+        self.problems: list[str] = []
+        """One line per checkpoint set aside or save that failed, for the operator (bounded)."""
+        self._lock = threading.Lock()
+        self.directory.mkdir(mode=0o750, parents=True, exist_ok=True)
+        self._remove_temp_files()
+
+    # ------------------------------------------------------------------------------------ listing
+    def generations(self, name: str) -> list[tuple[int, Path]]:
+        """(seq, path) of the checkpoints of `name`, newest first."""
+        _check_name(name)
+        out = []
+        for entry in os.scandir(self.directory):
+            m = FILE.fullmatch(entry.name)
+            if m and m.group("name") == name and entry.is_file(follow_symlinks=False):
+                out.append((int(m.group("seq")), Path(entry.path)))
+        return sorted(out, reverse=True)
+
+    def names(self) -> list[str]:
+        """Names with at least one checkpoint file."""
+        found = {m.group("name") for e in os.scandir(self.directory) if (m := FILE.fullmatch(e.name))}
+        return sorted(found)
+
+    # ------------------------------------------------------------------------------------- saving
+    def save(self, name: str, grid: OccupancyGrid, meta: MapMeta) -> Path | None:
+        """Write grid + meta as the next checkpoint of `name`; the path, or None if it failed."""
+        try:
+            data = encode_map(grid, meta, self.encoding)
+        except (ValueError, MemoryError) as e:
+            return self._failed(name, f"cannot encode: {e}")
+        return self.save_message(name, data)
+
+    def save_message(self, name: str, data: bytes) -> Path | None:
+        """Write an already encoded coopd map message (e.g. a received map, still compressed)."""
+        _check_name(name)
+        try:
+            info = peek(data)
+        except WireError as e:
+            return self._failed(name, f"not a map message: {e}")
+        if info.message_type != MSG_COOPD_MAP or info.crc32 is None or info.total_size != len(data):
+            return self._failed(name, "only complete coopd map messages (type 1, with CRC) are checkpointed")
+        with self._lock:
+            gens = self.generations(name)
+            seq = (gens[0][0] + 1) if gens else 1
+            path = self.directory / f"{name}.{seq:010d}.cmap"
+            t0 = time.monotonic()
+            try:
+                atomic.write_atomic(path, data)
+            except OSError as e:
+                code = errno.errorcode.get(e.errno, str(e.errno))
+                return self._failed(name, f"{code}: {e.strerror or e}")
+            self.saved += 1
+            self.last_path = path
+            self.last_save_time = time.time()
+            self.last_error = None
+            removed = self._prune(name, [(seq, path)] + gens)
+        log.info(
+            "checkpoint %s: %d bytes in %.0f ms (map version %d, %d old removed)",
+            path.name,
+            len(data),
+            1000 * (time.monotonic() - t0),
+            info.map_version,
+            removed,
+        )
+        return path
+
+    def _failed(self, name: str, why: str) -> None:
+        self.failed += 1
+        self.last_error = f"{name}: {why}"
+        self._problem(f"checkpoint of {name} failed ({why}); earlier checkpoints kept")
+        log.error("checkpoint of %s failed (%s); earlier checkpoints kept", name, why)
+        return None
+
+    def _prune(self, name: str, gens: list[tuple[int, Path]]) -> int:
+        removed = 0
+        for _, path in sorted(gens, reverse=True)[self.keep :]:
+            try:
+                path.unlink()
+                removed += 1
+            except FileNotFoundError:
+                pass
+            except OSError as e:
+                log.warning("cannot remove old checkpoint %s: %s", path, e)
+        return removed
+
+    # ------------------------------------------------------------------------------------ loading
+    def load_latest(self, name: str = "local") -> Checkpoint | None:
+        """The newest valid checkpoint of `name` (invalid newer ones are set aside), or None."""
+        with self._lock:
+            for seq, path in self.generations(name):
+                try:
+                    data = read_cmap_bytes(path, self.limits)
+                    info = peek(data)
+                    if info.message_type != MSG_COOPD_MAP or info.crc32 is None:
+                        raise WireError(f"message type {info.message_type} without CRC is not a checkpoint")
+                    grid, meta = decode_map(data, self.limits)
+                except (WireError, ValueError, MemoryError) as e:
+                    self._set_aside(path, str(e))
+                    continue
+                except OSError as e:  # unreadable (EIO, EACCES): leave it, try the older ones
+                    self._problem(f"checkpoint {path.name} unreadable: {e}")
+                    log.error("checkpoint %s unreadable: %s", path, e)
+                    continue
+                log.info(
+                    "resuming %s from %s: %s cells, map version %d",
+                    name,
+                    path.name,
+                    "x".join(map(str, grid.shape)),
+                    meta.version,
+                )
+                return Checkpoint(name, seq, path, grid, meta, len(data))
+        return None
+
+    def load_all(self) -> dict[str, Checkpoint]:
+        """The newest valid checkpoint of every name on disk."""
+        out = {}
+        for name in self.names():
+            cp = self.load_latest(name)
+            if cp is not None:
+                out[name] = cp
+        return out
+
+    def _set_aside(self, path: Path, why: str) -> None:
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        target = path.with_name(f"{path.name}.corrupt-{stamp}")
+        n = 1
+        while target.exists():
+            n += 1
+            target = path.with_name(f"{path.name}.corrupt-{stamp}-{n}")
+        try:
+            os.rename(path, target)
+        except OSError as e:
+            log.error("corrupt checkpoint %s (%s) cannot be set aside: %s", path, why, e)
+            self._problem(f"corrupt checkpoint {path.name} ({why}) could not be set aside: {e}")
+            return
+        self.set_aside += 1
+        self._problem(f"corrupt checkpoint {path.name} ({why}) set aside as {target.name}")
+        log.error("corrupt checkpoint %s (%s): set aside as %s, not loaded", path.name, why, target.name)
+
+    def _problem(self, line: str) -> None:
+        self.problems.append(line)
+        del self.problems[:-20]
+
+    def _remove_temp_files(self) -> None:
+        for entry in os.scandir(self.directory):
+            if TEMP.fullmatch(entry.name):
+                try:
+                    os.unlink(entry.path)
+                    self.temp_removed += 1
+                except OSError:
+                    pass
+        if self.temp_removed:
+            log.info("removed %d unfinished checkpoint temp files in %s", self.temp_removed, self.directory)
+
+    def stats(self) -> dict:
+        """Plain data for `coopctl status`."""
+        return {
+            "directory": str(self.directory),
+            "saved": self.saved,
+            "failed": self.failed,
+            "set_aside": self.set_aside,
+            "last_path": str(self.last_path) if self.last_path else None,
+            "last_save_time": self.last_save_time,
+            "last_error": self.last_error,
+            "problems": list(self.problems),
+        }
+
+
+def _check_name(name: str) -> None:
+    if not isinstance(name, str) or not NAME.fullmatch(name):
+        raise ValueError(f"checkpoint name {name!r} must match {NAME.pattern}")

@@ -1,0 +1,8 @@
+"""Maps on disk: .cmap files (one wire message) and exports to PLY, PNG and OctoMap .bt."""
+
+from .bt import export_bt
+from .cmap import load_cmap, save_cmap
+from .ply import export_ply
+from .png import export_png_slice, export_png_top
+
+__all__ = ["export_bt", "export_ply", "export_png_slice", "export_png_top", "load_cmap", "save_cmap"]

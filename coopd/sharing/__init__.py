@@ -1,0 +1,1 @@
+"""Map sharing: the thesis codec, the wire format of map messages (and later MTP, transport)."""

@@ -1,0 +1,389 @@
+"""The sharing component the daemon uses: serve, discover, share on update (thesis §5.2),
+keep the newest received map per vehicle, and report per-peer stats.
+
+    svc = SharingService(SharingConfig(vehicle_id=3, peers=("10.42.0.1-10.42.0.20",)))
+    svc.start(); svc.publish(encoded_map, version); ... svc.received.get(5); svc.stop()
+
+Messages are opaque serialized maps; `inspect` reads their header (vehicle id, version, size,
+cells) and `verify` (optional) fully decodes them within the limits before they are stored.
+"""
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from . import discovery, mtp
+from .peers import MessageSummary, PeerTable, ReceivedStore, StoreFull
+from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
+
+log = logging.getLogger("coopd.sharing")
+
+DEFAULT_PORT = 7400
+
+
+@dataclass(frozen=True)
+class SharingConfig:
+    """Settings of the sharing component (the [sharing] table of coopd.toml)."""
+
+    vehicle_id: int
+    listen_host: str = "0.0.0.0"
+    port: int = DEFAULT_PORT
+    peers: tuple[str, ...] = ()
+    """Addresses to scan: '10.42.0.1-10.42.0.20', '10.42.0.7', 'host:7401'."""
+    peer_ports: tuple[int, ...] = (DEFAULT_PORT,)
+    scan_period: float = 2.0
+    grace_period: float = 30.0
+    """A peer not seen (and not connected) for this long is dropped from the table."""
+    relay: bool = False
+    """Also forward maps received from others (multi-hop); see docs/sharing.md."""
+    relay_delay: float = 1.0
+    """A received map is relayed only after this many seconds, so that peers in range of its
+    origin get it from the origin first and the relay is not wasted."""
+    max_vehicles: int = 256
+    """Received maps of at most this many vehicles are held."""
+    max_received_bytes: int = 1 << 30
+    """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
+    transport: TransportSettings = field(default_factory=TransportSettings)
+
+
+def wire_inspect(data) -> MessageSummary:
+    """inspect() for real map messages (coopd.sharing.wire)."""
+    from . import wire
+
+    info = wire.peek(data)
+    return MessageSummary(info.vehicle_id, info.map_version, info.total_size, info.cells)
+
+
+def wire_verifier(max_cells: int, max_bytes: int) -> Callable[[memoryview], None]:
+    """verify() for real map messages: decode once within the limits, keep nothing."""
+    from . import wire
+
+    limits = wire.DecodeLimits(max_cells=max_cells, max_bytes=max_bytes)
+
+    def verify(message: bytes) -> None:
+        wire.decode_map(message, limits)
+
+    return verify
+
+
+class SharingService:
+    """Server + discovery + one sender per peer vehicle; see the module docstring."""
+
+    def __init__(self, config: SharingConfig, inspect: Callable = wire_inspect,
+                 verify: Callable | None = None, on_map: Callable | None = None):
+        self.config = config
+        self.vehicle_id = config.vehicle_id
+        self._inspect = inspect
+        self._verify = verify
+        self._on_map = on_map
+        self.peers = PeerTable()
+        self.received = ReceivedStore(config.max_vehicles, config.max_received_bytes)
+        self.arrivals: queue.Queue = queue.Queue(maxsize=64)
+        """(vehicle id, version) of every stored map, for consumers that poll; oldest dropped if full."""
+        self._targets = discovery.parse_targets(config.peers, config.peer_ports)
+        self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
+                                 config.listen_host, config.port, self._wants)
+        self._own: tuple[int, bytes] | None = None
+        self._update = threading.Condition()
+        self._stop = threading.Event()
+        self._senders: dict[int, _Sender] = {}
+        self._busy_targets: set[tuple[str, int]] = set()
+        self._self_targets: set[tuple[str, int]] = set()
+        self._alias_targets: dict[tuple[str, int], int] = {}
+        """Targets that reached a vehicle already served at another address -> that vehicle id."""
+        self._backoff: dict[tuple[str, int], tuple[float, int]] = {}
+        """Targets whose handshake failed -> (monotonic time of the next try, failures in a row)."""
+        self._all_senders: set[_Sender] = set()
+        self._lock = threading.Lock()
+        self._scanner: threading.Thread | None = None
+        self.scans = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def address(self) -> tuple[str, int]:
+        return self._server.address
+
+    def start(self) -> "SharingService":
+        self._server.start()
+        self._scanner = threading.Thread(target=self._scan_loop, name="coopd-share-discovery", daemon=True)
+        self._scanner.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._update:
+            self._update.notify_all()
+        if self._scanner is not None:
+            self._scanner.join(5)
+        with self._lock:
+            senders = list(self._all_senders)
+        for s in senders:
+            s.link.close()
+        for s in senders:
+            s.thread.join(5)
+        self._server.stop()
+
+    # ------------------------------------------------------------------ publishing
+    def publish(self, message: bytes, version: int) -> None:
+        """Offer our latest map; peers get it if `version` is newer than what they have."""
+        if version < 1:
+            raise ValueError(f"published versions start at 1, got {version}")
+        with self._update:
+            if self._own is not None and version < self._own[0]:
+                raise ValueError(f"version {version} is older than the published {self._own[0]}")
+            self._own = (version, bytes(message))
+            self._update.notify_all()
+
+    def pending_for(self, peer_vid: int) -> list[tuple[int, int, bytes]]:
+        """(origin, version, message) this peer lacks: our map, and with relay, others' maps."""
+        out = []
+        own = self._own
+        if own is not None and own[0] > self.peers.has_version(peer_vid, self.vehicle_id):
+            out.append((self.vehicle_id, own[0], own[1]))
+        if self.config.relay:
+            settled = time.time() - self.config.relay_delay
+            for m in self.received.all():
+                if m.vehicle_id in (peer_vid, self.vehicle_id) or m.via == peer_vid:
+                    continue
+                if m.received_at > settled:
+                    continue  # picked up by a later wake-up of the sender loop
+                if m.version > self.peers.has_version(peer_vid, m.vehicle_id):
+                    out.append((m.vehicle_id, m.version, m.data))
+        return out
+
+    def decode(self, vehicle_id: int):
+        """(OccupancyGrid, MapMeta) of the stored map of `vehicle_id`, decoded now within the limits
+        (received maps rest serialized until the merger asks); None if none is held."""
+        from . import wire
+
+        stored = self.received.get(vehicle_id)
+        if stored is None:
+            return None
+        s = self.config.transport
+        return wire.decode_map(stored.data, wire.DecodeLimits(max_cells=s.max_cells, max_bytes=s.max_bytes))
+
+    # ------------------------------------------------------------------ receiving
+    def _wants(self, origin: int, version: int) -> int:
+        """Answer a relay offer: send it (ACK_OK) unless we hold that version or newer (ACK_STALE)."""
+        if origin == self.vehicle_id or 0 < version <= self.received.version(origin):
+            return mtp.ACK_STALE
+        return mtp.ACK_OK
+
+    def _accept(self, arrival: Arrival) -> int:
+        """Check a complete transfer, store it if newer; Rejected drops it (counted by the server)."""
+        s = self.config.transport
+        data = arrival.data
+        try:
+            summary = self._inspect(data)
+        except ValueError as e:
+            raise Rejected("malformed", f"message header: {e}") from None
+        if summary.size > len(data):
+            raise Rejected("size", f"message says {summary.size} bytes, its {arrival.blocks} blocks hold "
+                                   f"{len(data)}")
+        if len(data) - summary.size >= s.block_size:
+            raise Rejected("size", f"message of {summary.size} bytes sent in {arrival.blocks} blocks "
+                                   f"(more than it needs)")
+        if summary.cells > s.max_cells:
+            raise Rejected("oversize", f"{summary.cells} cells, limit {s.max_cells}")
+        via = arrival.peer_vehicle_id if arrival.peer_vehicle_id is not None else summary.vehicle_id
+        nbytes = summary.size
+        if summary.vehicle_id == self.vehicle_id:
+            self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
+                                arrival.address)
+            return mtp.ACK_STALE
+        if summary.version != 0 and summary.version <= self.received.version(summary.vehicle_id):
+            self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
+                                arrival.address)
+            return mtp.ACK_STALE
+        del data
+        message = arrival.take(summary.size)
+        if self._verify is not None:
+            try:
+                self._verify(message)
+            except (ValueError, MemoryError) as e:
+                raise Rejected("decode", f"map from vehicle {summary.vehicle_id}: {e}") from None
+        try:
+            stored = self.received.offer(summary, message, via)
+        except StoreFull as e:
+            raise Rejected("store_full", str(e)) from None
+        self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
+                            arrival.address)
+        if not stored:
+            return mtp.ACK_STALE
+        rate = nbytes / arrival.seconds / 1e6 if arrival.seconds > 0 else float("inf")
+        log.info("map of vehicle %d v%d received via %s (%d bytes, %.3f s, %.1f MB/s)",
+                 summary.vehicle_id, summary.version, via, nbytes, arrival.seconds, rate)
+        try:
+            self.arrivals.put_nowait((summary.vehicle_id, summary.version))
+        except queue.Full:
+            try:
+                self.arrivals.get_nowait()
+            except queue.Empty:
+                pass
+            self.arrivals.put_nowait((summary.vehicle_id, summary.version))
+        if self._on_map is not None:
+            try:
+                self._on_map(summary.vehicle_id, summary.version)
+            except Exception:  # the map is stored; a consumer's bug must not fail the transfer
+                log.exception("on_map callback failed for vehicle %d v%d", summary.vehicle_id,
+                              summary.version)
+        if self.config.relay:
+            with self._update:
+                self._update.notify_all()
+        return mtp.ACK_OK
+
+    # ------------------------------------------------------------------ discovery
+    def set_peers(self, specs, ports=None) -> None:
+        """Replace the scanned addresses (e.g. on a config reload)."""
+        targets = discovery.parse_targets(specs, self.config.peer_ports if ports is None else ports)
+        with self._lock:
+            self._targets = targets
+
+    def scan_once(self) -> int:
+        """Probe every target without a live sender; start senders for new peers. Returns peers found."""
+        now = time.monotonic()
+        with self._lock:
+            todo = [t for t in self._targets
+                    if t not in self._busy_targets and t not in self._self_targets
+                    and self._backoff.get(t, (0.0, 0))[0] <= now
+                    and not (t in self._alias_targets and self.peers.is_connected(self._alias_targets[t]))]
+        found = 0
+        source = None if self.config.listen_host in ("", "0.0.0.0") else self.config.listen_host
+        for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
+            link = PeerLink(sock, self.config.transport, self.vehicle_id, target[0], self._server.instance)
+            sender = _Sender(self, link, target)
+            with self._lock:
+                if self._stop.is_set():
+                    sock.close()
+                    break
+                self._busy_targets.add(target)
+                self._all_senders.add(sender)
+            sender.thread.start()
+            found += 1
+        self.scans += 1
+        for vid in self.peers.forget_stale(self.config.grace_period):
+            log.info("peer vehicle %d dropped: not seen for %.0f s", vid, self.config.grace_period)
+        return found
+
+    def _scan_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.scan_once()
+            except Exception:  # a scan must never kill discovery
+                log.exception("discovery scan failed")
+            self._stop.wait(self.config.scan_period)
+
+    def _register(self, vid: int, sender: "_Sender") -> bool:
+        with self._lock:
+            live = self._senders.get(vid)
+            if live is not None and live.thread.is_alive() and live is not sender:
+                return False
+            self._senders[vid] = sender
+            return True
+
+    def _unregister(self, sender: "_Sender", handshake_failed: bool) -> None:
+        with self._lock:
+            self._all_senders.discard(sender)
+            self._busy_targets.discard(sender.target)
+            if handshake_failed:  # e.g. wrong swarm key or block size: retry later, not every scan
+                _, n = self._backoff.get(sender.target, (0.0, 0))
+                delay = min(60.0, self.config.scan_period * 2 ** min(n, 10))
+                self._backoff[sender.target] = (time.monotonic() + delay, n + 1)
+            else:
+                self._backoff.pop(sender.target, None)
+            if sender.vid is not None and self._senders.get(sender.vid) is sender:
+                del self._senders[sender.vid]
+
+    def _mark_self(self, target) -> None:
+        with self._lock:
+            self._self_targets.add(target)
+
+    def _mark_alias(self, target, vid: int) -> None:
+        with self._lock:
+            self._alias_targets[target] = vid
+
+    def stats(self) -> dict:
+        """Everything coopctl status shows about sharing."""
+        own = self._own
+        snap = self.peers.snapshot()
+        snap.update({
+            "vehicle_id": self.vehicle_id, "listen": "{}:{}".format(*self.address),
+            "published_version": None if own is None else own[0],
+            "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
+            "received_bytes_held": self.received.total_bytes(),
+            "open_connections": self._server.open_connections,
+            "inflight_bytes": self._server.inflight_bytes,
+            "connections_accepted": self._server.accepted,
+            "refused_busy": self._server.refused_busy, "scans": self.scans,
+        })
+        return snap
+
+
+class _Sender:
+    """One thread per discovered peer: hello, then send whatever the peer lacks, on every update."""
+
+    def __init__(self, service: SharingService, link: PeerLink, target):
+        self.service, self.link, self.target = service, link, target
+        self.vid: int | None = None
+        self.thread = threading.Thread(target=self.run, name=f"coopd-share-send-{target[0]}", daemon=True)
+
+    def run(self) -> None:
+        svc = self.service
+        try:
+            self._run()
+        except (OSError, ValueError) as e:  # MtpError is a ValueError; TimeoutError an OSError
+            cause = getattr(e, "cause", "timeout" if isinstance(e, TimeoutError) else "cut")
+            if not svc._stop.is_set():
+                svc.peers.failure(cause, self.vid, self.target[0])
+                if self.link.peer is None and svc._backoff.get(self.target, (0, 0))[1] > 0:
+                    log.debug("handshake with %s:%d failed again: %s: %s", *self.target, cause, e)
+                else:
+                    log.warning("sending to %s:%d (vehicle %s) failed: %s: %s", *self.target, self.vid,
+                                cause, e)
+        finally:
+            self.link.close()
+            if self.vid is not None:
+                svc.peers.disconnected(self.vid)
+            svc._unregister(self, handshake_failed=self.link.peer is None)
+
+    def _run(self) -> None:
+        svc = self.service
+        hello = self.link.handshake()
+        if hello.vehicle_id == svc.vehicle_id:
+            svc._mark_self(self.target)
+            return
+        self.vid = hello.vehicle_id
+        if not svc._register(self.vid, self):
+            svc._mark_alias(self.target, self.vid)  # the vehicle is already served at another address
+            self.vid = None
+            return
+        svc.peers.hello(self.vid, hello.instance)
+        svc.peers.seen(self.vid, *self.target, connected=True)
+        log.info("peer vehicle %d found at %s:%d", self.vid, *self.target)
+        while not svc._stop.is_set():
+            for origin, version, message in svc.pending_for(self.vid):
+                if svc._stop.is_set():
+                    return
+                if origin != svc.vehicle_id and self.link.offer(origin, version) == mtp.ACK_STALE:
+                    svc.peers.peer_has(self.vid, origin, version)  # relay declined: it has it already
+                    svc.peers.offer_declined(self.vid)
+                    continue
+                status, seconds = self.link.send_map(message)
+                if status == mtp.ACK_OK:
+                    svc.peers.sent(self.vid, origin, version, len(message), seconds)
+                    log.info("map of vehicle %d v%d sent to vehicle %d (%d bytes, %.3f s)",
+                             origin, version, self.vid, len(message), seconds)
+                else:
+                    svc.peers.peer_has(self.vid, origin, version, redundant=status == mtp.ACK_STALE)
+                    if status != mtp.ACK_STALE:
+                        svc.peers.failure("rejected_by_peer", self.vid)
+            with svc._update:
+                if not svc.pending_for(self.vid) and not svc._stop.is_set():
+                    svc._update.wait(0.5)
+            if self.link.closed_by_peer():
+                log.info("peer vehicle %d closed the connection", self.vid)
+                return
+            svc.peers.seen(self.vid)

@@ -1,0 +1,62 @@
+"""The optional swarm key: an HMAC-SHA256 tag per transfer, bound to the connection's nonces
+and the transfer's sequence number so a recorded transfer cannot be replayed (docs/sharing.md)."""
+
+import hashlib
+import hmac
+import os
+import struct
+
+CONTEXT = b"coopd-mtp/1 transfer"
+NONCE_SIZE = 16
+
+
+def new_nonce() -> bytes:
+    return os.urandom(NONCE_SIZE)
+
+
+def load_key(value: str | bytes | None) -> bytes | None:
+    """The key from a config value: None/empty for no key, 'hex:...' or a passphrase string."""
+    if not value:
+        return None
+    if isinstance(value, bytes):
+        key = value
+        if not key:
+            return None
+    elif value.startswith("hex:"):
+        key = bytes.fromhex(value[4:])
+    else:
+        key = value.encode()
+    if len(key) < 16:
+        raise ValueError(f"swarm key must have at least 16 bytes, got {len(key)}")
+    return key
+
+
+MAX_KEY_FILE_BYTES = 4096
+
+
+def read_key_file(path) -> bytes | None:
+    """The swarm key from a file (the daemon's swarm_key_file): its bytes without surrounding
+    whitespace; 'hex:...' content is decoded. None for an empty path."""
+    if not path:
+        return None
+    with open(path, "rb") as f:
+        data = f.read(MAX_KEY_FILE_BYTES + 1)
+    if len(data) > MAX_KEY_FILE_BYTES:
+        raise ValueError(f"swarm key file {path} is larger than {MAX_KEY_FILE_BYTES} bytes")
+    data = data.strip()
+    return load_key(data.decode("ascii") if data.startswith(b"hex:") else data)
+
+
+def transfer_tag(key: bytes, receiver_nonce: bytes, sender_nonce: bytes, seq: int, blocks: int,
+                 message, padding: int = 0) -> bytes:
+    """HMAC-SHA256 over context, nonces, sequence, block count and the data blocks as sent."""
+    mac = hmac.new(key, CONTEXT + receiver_nonce + sender_nonce + struct.pack("<QI", seq, blocks),
+                   hashlib.sha256)
+    mac.update(message)
+    if padding:
+        mac.update(bytes(padding))
+    return mac.digest()
+
+
+def tag_is_valid(expected: bytes, got: bytes | None) -> bool:
+    return got is not None and hmac.compare_digest(expected, got)

@@ -1,0 +1,514 @@
+"""MTP over TCP: the map server (one listener, one bounded thread per connection) and the
+sending side of a peer connection (hello, transfers, acks). Messages are opaque bytes here;
+what a message means is decided by the `accept` callback the server is given."""
+
+import logging
+import os
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from . import mtp, swarmkey
+from .mtp import Hello, MtpError, Offer, Reassembler, Transfer
+from .peers import PeerTable
+
+log = logging.getLogger("coopd.sharing")
+
+SEND_CHUNK = 256 * 1024
+"""Bytes per sendall: each chunk gets the write timeout, so a stalled receiver is noticed."""
+
+
+@dataclass(frozen=True)
+class TransportSettings:
+    """Timeouts and bounds of both ends of a connection (docs/sharing.md, 'Settings')."""
+
+    block_size: int = mtp.DEFAULT_BLOCK_SIZE
+    connect_timeout: float = 0.5
+    read_timeout: float = 5.0
+    """Longest wait for any single read or write."""
+    handshake_timeout: float = 3.0
+    """A new connection must send its first frame within this time."""
+    idle_timeout: float = 60.0
+    """A connection with no transfer for this long is closed (the sender reconnects)."""
+    transfer_base_s: float = 10.0
+    min_rate: float = 128_000.0
+    """Bytes/s: after transfer_base_s a transfer must have received at least min_rate bytes per
+    second so far (so it ends by transfer_base_s + size / min_rate, and a trickle is cut early)."""
+    max_connections: int = 32
+    max_connections_per_address: int = 4
+    """A single host flooding connections cannot take every slot."""
+    max_bytes: int = 256 << 20
+    """Largest transfer (data blocks) accepted."""
+    max_cells: int = 400_000_000
+    max_inflight_bytes: int = 512 << 20
+    """Reassembly buffers of all concurrent transfers together."""
+    swarm_key: bytes | None = None
+    max_send_rate: float = 0.0
+    """Bytes/s per peer link, 0 = unlimited: leaves room on a shared radio for other traffic."""
+
+    def __post_init__(self):
+        mtp.check_block_size(self.block_size)
+        for name in ("connect_timeout", "read_timeout", "handshake_timeout", "idle_timeout",
+                     "transfer_base_s", "min_rate"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("max_connections", "max_connections_per_address", "max_bytes", "max_cells",
+                     "max_inflight_bytes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.max_send_rate < 0:
+            raise ValueError(f"max_send_rate must be >= 0, got {self.max_send_rate}")
+        if self.swarm_key is not None and len(self.swarm_key) < 16:
+            raise ValueError("swarm key must have at least 16 bytes")
+
+    def transfer_deadline(self, nbytes: int) -> float:
+        return self.transfer_base_s + nbytes / self.min_rate
+
+
+class Rejected(Exception):
+    """A complete transfer whose content is refused; `cause` is the stats key."""
+
+    def __init__(self, cause: str, message: str):
+        super().__init__(message)
+        self.cause = cause
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """A complete, authenticated transfer handed to the server's accept callback."""
+
+    data: memoryview
+    blocks: int
+    peer_vehicle_id: int | None
+    """From the connection hello; None for thesis-format peers (no hello)."""
+    address: str
+    seconds: float
+    buffer: bytearray | None = None
+
+    def take(self, size: int) -> bytes | bytearray:
+        """The first `size` bytes as an object of their own, without a copy when possible."""
+        buf = self.buffer
+        if buf is not None:
+            try:
+                self.data.release()
+                del buf[size:]  # shrinks in place; refused while other views of it are alive
+                return buf
+            except (BufferError, ValueError):
+                pass
+        return bytes(memoryview(buf if buf is not None else self.data)[:size])
+
+
+class _Budget:
+    """A byte budget shared by all reassembly buffers."""
+
+    def __init__(self, limit: int):
+        self.limit, self.used, self.peak = limit, 0, 0
+        self._lock = threading.Lock()
+
+    def reserve(self, n: int) -> bool:
+        with self._lock:
+            if self.used + n > self.limit:
+                return False
+            self.used += n
+            self.peak = max(self.peak, self.used)
+            return True
+
+    def release(self, n: int) -> None:
+        with self._lock:
+            self.used -= n
+
+
+class MapServer:
+    """Receives transfers: every connection in its own thread, every read timed, every buffer bounded."""
+
+    def __init__(self, settings: TransportSettings, vehicle_id: int, accept: Callable[[Arrival], int],
+                 peers: PeerTable, host: str = "0.0.0.0", port: int = 0,
+                 wants: Callable[[int, int], int] | None = None):
+        self.settings = settings
+        self.vehicle_id = vehicle_id
+        self._accept = accept
+        self._wants = wants or (lambda origin, version: mtp.ACK_OK)
+        """Answer to a relay offer: ACK_OK (send it) or ACK_STALE (already held)."""
+        self.peers = peers
+        self._bind = (host, port)
+        self._listener: socket.socket | None = None
+        self._stop = threading.Event()
+        self._slots = threading.BoundedSemaphore(settings.max_connections)
+        self._budget = _Budget(settings.max_inflight_bytes)
+        self._conns: set[socket.socket] = set()
+        self._per_address: dict[str, int] = {}
+        self._threads: set[threading.Thread] = set()
+        self._lock = threading.Lock()
+        self._accept_thread: threading.Thread | None = None
+        self.refused_busy = 0
+        self.accepted = 0
+        self.instance = int.from_bytes(os.urandom(8), "little")
+        """Random per server: tells peers this daemon restarted (and lost what it had received)."""
+
+    @property
+    def address(self) -> tuple[str, int]:
+        return self._listener.getsockname()[:2]
+
+    @property
+    def inflight_bytes(self) -> int:
+        return self._budget.used
+
+    @property
+    def peak_inflight_bytes(self) -> int:
+        return self._budget.peak
+
+    @property
+    def open_connections(self) -> int:
+        with self._lock:
+            return len(self._conns)
+
+    def start(self) -> "MapServer":
+        ls = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        ls.bind(self._bind)
+        ls.listen(128)
+        ls.settimeout(0.2)
+        self._listener = ls
+        self._accept_thread = threading.Thread(target=self._accept_loop, name="coopd-share-server",
+                                               daemon=True)
+        self._accept_thread.start()
+        log.info("map server listening on %s:%d (block size %d, key %s)", *self.address,
+                 self.settings.block_size, "on" if self.settings.swarm_key else "off")
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._accept_thread is not None:
+            self._accept_thread.join(2)
+        if self._listener is not None:
+            self._listener.close()
+        with self._lock:
+            for c in list(self._conns):
+                try:
+                    c.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+            threads = list(self._threads)
+        for t in threads:
+            t.join(2)
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, addr = self._listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    return
+                time.sleep(0.05)
+                continue
+            self.accepted += 1
+            with self._lock:
+                per_address = self._per_address.get(addr[0], 0)
+            if per_address >= self.settings.max_connections_per_address or \
+                    not self._slots.acquire(blocking=False):
+                self.refused_busy += 1
+                self.peers.failure("busy", address=addr[0])
+                conn.close()
+                continue
+            t = threading.Thread(target=self._serve, args=(conn, addr), name="coopd-share-conn", daemon=True)
+            with self._lock:
+                self._conns.add(conn)
+                self._threads.add(t)
+                self._per_address[addr[0]] = per_address + 1
+            t.start()
+
+    def _serve(self, conn: socket.socket, addr) -> None:
+        try:
+            _Connection(self, conn, addr[0]).run()
+        finally:
+            conn.close()
+            with self._lock:
+                self._conns.discard(conn)
+                self._threads.discard(threading.current_thread())
+                left = self._per_address.pop(addr[0], 1) - 1
+                if left > 0:
+                    self._per_address[addr[0]] = left
+            self._slots.release()
+
+
+class _Connection:
+    """One accepted connection: hello (optional), then any number of transfers."""
+
+    def __init__(self, server: MapServer, conn: socket.socket, address: str):
+        self.server, self.conn, self.address = server, conn, address
+        self.s = server.settings
+        self.reasm = Reassembler(self.s.block_size, self.s.max_bytes,
+                                 server._budget.reserve, server._budget.release)
+        self.hello: Hello | None = None
+        self.nonce = swarmkey.new_nonce()
+        self.seq = 0
+
+    @property
+    def vehicle_id(self) -> int | None:
+        return None if self.hello is None else self.hello.vehicle_id
+
+    def run(self) -> None:
+        cause, detail = None, ""
+        try:
+            self._loop()
+        except MtpError as e:
+            cause, detail = e.cause, str(e)
+            if e.cause == "block_size":
+                self._refuse_with_hello()
+        except Rejected as e:
+            cause, detail = e.cause, str(e)
+        except TimeoutError as e:
+            cause, detail = "timeout", str(e) or "read timed out"
+        except OSError as e:
+            cause, detail = "cut", f"connection error: {e}"
+        except Exception as e:  # a bug in a callback must cost one transfer, not the server
+            log.exception("internal error while receiving from %s", self.address)
+            cause, detail = "internal", repr(e)
+        finally:
+            self.reasm.close()
+        if cause is not None:
+            self.server.peers.failure(cause, self.vehicle_id, self.address)
+            log.warning("transfer from %s (vehicle %s) dropped: %s: %s", self.address, self.vehicle_id,
+                        cause, detail)
+
+    def _loop(self) -> None:
+        s = self.s
+        stop = self.server._stop
+        deadline = time.monotonic() + s.handshake_timeout
+        phase = "handshake"
+        t_start = 0.0
+        while not stop.is_set():
+            now = time.monotonic()
+            if phase == "transfer":  # keep up at least min_rate after the base time, all along
+                deadline = t_start + s.transfer_base_s + self.reasm.received_bytes / s.min_rate
+            if now >= deadline:
+                if phase == "idle" and self.reasm.between_transfers:
+                    log.info("closing idle connection from %s (vehicle %s)", self.address, self.vehicle_id)
+                    return
+                raise TimeoutError(f"{phase} deadline passed after {self.reasm.received_bytes} bytes")
+            self.conn.settimeout(min(s.read_timeout, deadline - now))
+            buf = self.reasm.buffer()
+            try:
+                n = self.conn.recv_into(buf)
+            except TimeoutError:
+                if self.reasm.between_transfers:
+                    continue  # quiet between transfers: only the phase deadline applies
+                raise TimeoutError(f"no data for {s.read_timeout} s after {self.reasm.received_bytes} "
+                                   f"of {self.reasm.announced_bytes} bytes") from None
+            if n == 0:
+                if not self.reasm.between_transfers:
+                    raise MtpError("cut", f"connection closed mid-transfer after {self.reasm.received_bytes} "
+                                          f"of {self.reasm.announced_bytes} bytes")
+                return
+            was_in = self.reasm.in_transfer
+            events = self.reasm.commit(n)
+            if phase == "idle" and not self.reasm.between_transfers:
+                phase = "frame"  # a control frame has begun: base transfer time, not the idle time
+                deadline = min(deadline, time.monotonic() + s.transfer_base_s)
+            if self.reasm.in_transfer and not was_in:
+                if s.swarm_key is not None and self.hello is None:
+                    raise Rejected("auth", "a swarm key is set and the peer sent no hello (thesis-format "
+                                           "peers cannot authenticate)")
+                t_start = time.monotonic()
+                phase = "transfer"
+                deadline = t_start + s.transfer_deadline(self.reasm.announced_bytes)
+            for ev in events:
+                if isinstance(ev, Hello):
+                    self._on_hello(ev)
+                    phase, deadline = "idle", time.monotonic() + s.idle_timeout
+                elif isinstance(ev, Transfer):
+                    self._on_transfer(ev, time.monotonic() - t_start)
+                    phase, deadline = "idle", time.monotonic() + s.idle_timeout
+                elif isinstance(ev, Offer):
+                    self._ack(0, self.server._wants(ev.origin, ev.version))
+                    phase, deadline = "idle", time.monotonic() + s.idle_timeout
+
+    def _refuse_with_hello(self) -> None:
+        """Tell a peer with another block size ours (so it fails clearly too), then close gently."""
+        s = self.s
+        try:
+            self._send(mtp.hello_frame(Hello(s.block_size, self.server.vehicle_id, self.nonce,
+                                             s.swarm_key is not None, self.server.instance)))
+            self.conn.shutdown(socket.SHUT_WR)
+            self.conn.settimeout(0.2)
+            for _ in range(64):  # bounded drain so close() does not reset before the peer reads
+                if not self.conn.recv(65536):
+                    break
+        except OSError:
+            pass
+
+    def _on_hello(self, hello: Hello) -> None:
+        s = self.s
+        self.hello = hello
+        keyed = s.swarm_key is not None
+        reply = Hello(s.block_size, self.server.vehicle_id, self.nonce, keyed, self.server.instance)
+        self._send(mtp.hello_frame(reply))
+        if hello.keyed != keyed:
+            raise Rejected("auth", f"swarm key mismatch: peer key {'on' if hello.keyed else 'off'}, "
+                                   f"ours {'on' if keyed else 'off'}")
+        if hello.vehicle_id != self.server.vehicle_id:  # our own scan reaching our own server
+            self.server.peers.seen(hello.vehicle_id)
+            log.info("peer vehicle %d connected from %s", hello.vehicle_id, self.address)
+
+    def _on_transfer(self, t: Transfer, seconds: float) -> None:
+        s = self.s
+        seq = self.seq
+        self.seq += 1
+        if s.swarm_key is not None:
+            expected = swarmkey.transfer_tag(s.swarm_key, self.nonce, self.hello.nonce, seq, t.blocks, t.data)
+            if not swarmkey.tag_is_valid(expected, t.tag):
+                self._ack(t.blocks, mtp.ACK_REJECTED)
+                raise Rejected("auth", "missing or invalid HMAC tag" if t.tag else "transfer has no HMAC tag")
+        try:
+            status = self.server._accept(Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds,
+                                                 t.buffer))
+        except Rejected:
+            self._ack(t.blocks, mtp.ACK_REJECTED)
+            raise
+        self._ack(t.blocks, status)
+
+    def _ack(self, blocks: int, status: int) -> None:
+        if self.hello is not None:
+            self._send(mtp.ack_frame(blocks, status, self.s.block_size))
+
+    def _send(self, data: bytes) -> None:
+        self.conn.settimeout(self.s.read_timeout)
+        self.conn.sendall(data)
+
+
+class PeerLink:
+    """Our side of a connection to a peer's map server: hello exchange, then transfers with acks."""
+
+    def __init__(self, sock: socket.socket, settings: TransportSettings, vehicle_id: int, address: str = "",
+                 instance: int = 0):
+        self.instance = instance
+        self.sock = sock
+        self.s = settings
+        self.vehicle_id = vehicle_id
+        self.address = address
+        self.nonce = swarmkey.new_nonce()
+        self.peer: Hello | None = None
+        self.seq = 0
+
+    @classmethod
+    def connect(cls, host: str, port: int, settings: TransportSettings, vehicle_id: int,
+                source: str | None = None) -> "PeerLink":
+        sock = socket.create_connection((host, port), timeout=settings.connect_timeout,
+                                        source_address=(source, 0) if source else None)
+        link = cls(sock, settings, vehicle_id, host)
+        try:
+            link.handshake()
+        except BaseException:
+            sock.close()
+            raise
+        return link
+
+    def handshake(self) -> Hello:
+        """Send our hello, read theirs; MtpError on a block size or swarm key mismatch."""
+        s = self.s
+        self.sock.settimeout(s.read_timeout)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        _keepalive(self.sock)
+        self.sock.sendall(mtp.hello_frame(Hello(s.block_size, self.vehicle_id, self.nonce,
+                                                s.swarm_key is not None, self.instance)))
+        head = self._recv_exact(mtp.HEAD.size, s.handshake_timeout)
+        marker, kind, bs = mtp.HEAD.unpack(head)
+        if marker != mtp.MARK or kind != mtp.HELLO:
+            raise MtpError("frame", f"peer did not answer with a hello (bytes {head[:2].hex()})")
+        if bs != s.block_size:
+            raise MtpError("block_size", f"peer uses block size {bs}, this end uses {s.block_size}; "
+                                         f"both ends must agree (setting sharing.block_size)")
+        frame = head + self._recv_exact(bs - mtp.HEAD.size, s.handshake_timeout)
+        peer = mtp.parse_hello(frame)
+        if peer.keyed != (s.swarm_key is not None):
+            raise MtpError("auth", f"swarm key mismatch: peer key {'on' if peer.keyed else 'off'}, "
+                                   f"ours {'on' if s.swarm_key else 'off'}")
+        self.peer = peer  # set only once the handshake succeeded
+        return peer
+
+    def send_map(self, message) -> tuple[int, float]:
+        """Send one message as an MTP transfer; return (ack status, seconds until the ack)."""
+        s = self.s
+        bs = s.block_size
+        view = memoryview(message).cast("B")
+        blocks = mtp.block_count(len(view), bs)
+        pad = blocks * bs - len(view)
+        tag = None
+        if s.swarm_key is not None:
+            tag = swarmkey.transfer_tag(s.swarm_key, self.peer.nonce, self.nonce, self.seq, blocks, view, pad)
+        self.seq += 1
+        t0 = time.monotonic()
+        self.sock.settimeout(s.read_timeout)
+        self.sock.sendall(mtp.start_frame(blocks, bs))
+        rate = s.max_send_rate
+        step = SEND_CHUNK if rate <= 0 else int(min(SEND_CHUNK, max(bs, rate / 20)))
+        sent = 0
+        for chunk in mtp.data_chunks(view, bs):
+            cv = memoryview(chunk)
+            for i in range(0, len(cv), step):
+                self.sock.sendall(cv[i:i + step])
+                sent += len(cv[i:i + step])
+                if rate > 0:
+                    ahead = sent / rate - (time.monotonic() - t0)
+                    if ahead > 0:
+                        time.sleep(ahead)
+        self.sock.sendall(mtp.stop_frame(blocks, bs, tag))
+        ack = self._recv_exact(bs, s.transfer_deadline(blocks * bs))
+        got, status = mtp.parse_ack(ack)
+        if got != blocks:
+            raise MtpError("count", f"peer acknowledged {got} blocks, we sent {blocks}")
+        return status, time.monotonic() - t0
+
+    def offer(self, origin: int, version: int) -> int:
+        """Ask whether the peer needs `origin`'s map at `version` (ACK_OK) or holds it (ACK_STALE)."""
+        self.sock.settimeout(self.s.read_timeout)
+        self.sock.sendall(mtp.offer_frame(origin, version, self.s.block_size))
+        blocks, status = mtp.parse_ack(self._recv_exact(self.s.block_size, self.s.read_timeout))
+        if blocks != 0:
+            raise MtpError("count", f"peer answered an offer with an ack for {blocks} blocks")
+        return status
+
+    def closed_by_peer(self) -> bool:
+        """True if the peer closed the connection (checked without blocking)."""
+        try:
+            r, _, _ = select.select([self.sock], [], [], 0)
+            if not r:
+                return False
+            return self.sock.recv(1, socket.MSG_PEEK) == b""
+        except OSError:
+            return True
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+    def _recv_exact(self, n: int, total_timeout: float) -> bytes:
+        buf = bytearray(n)
+        view = memoryview(buf)
+        got = 0
+        deadline = time.monotonic() + total_timeout
+        while got < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"peer sent {got} of {n} expected bytes in time")
+            self.sock.settimeout(min(left, max(self.s.read_timeout, total_timeout)))
+            k = self.sock.recv_into(view[got:])
+            if k == 0:
+                raise MtpError("cut", f"peer closed the connection after {got} of {n} bytes")
+            got += k
+        return bytes(buf)
+
+
+def _keepalive(sock: socket.socket) -> None:
+    """TCP keepalive with short intervals: a peer that vanishes while idle is noticed in ~6 s."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for opt, val in (("TCP_KEEPIDLE", 3), ("TCP_KEEPINTVL", 1), ("TCP_KEEPCNT", 3)):
+        if hasattr(socket, opt):
+            sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, opt), val)

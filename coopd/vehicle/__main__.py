@@ -1,0 +1,65 @@
+"""Probe the FC link (and optionally a camera socket) from a shell: one JSON status line per second.
+
+python -m coopd.vehicle udpin:0.0.0.0:14540 [--camera /run/cam.sock] [--seconds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+
+from .link import LinkConfig, VehicleLink
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m coopd.vehicle", description=__doc__.splitlines()[0])
+    p.add_argument("connection", help="udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or /dev/tty…,BAUD")
+    p.add_argument("--camera", default=None, help="camera socket (path or tcp:HOST:PORT) to associate frames")
+    p.add_argument("--seconds", type=float, default=10.0, help="how long to probe (default 10 s)")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        link = VehicleLink(LinkConfig(connection=a.connection))
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    source = assoc = None
+    if a.camera:
+        from ..camera import SocketDepthSource, SocketSourceConfig
+        from ..mapping.association import FrameAssociator
+
+        source = SocketDepthSource(SocketSourceConfig(a.camera))
+        assoc = FrameAssociator(link)
+        source.start()
+    link.start()
+    end = time.monotonic() + max(0.0, a.seconds)
+    next_print = time.monotonic() + 1.0
+    try:
+        while time.monotonic() < end:
+            if source is not None:
+                frame = source.slot.take(timeout=0.05)
+                if frame is not None:
+                    assoc.associate(frame)
+            else:
+                time.sleep(0.05)
+            if time.monotonic() >= next_print:
+                next_print += 1.0
+                out = {"vehicle": link.status()}
+                if source is not None:
+                    out["camera"] = source.status()
+                    out["association"] = assoc.status()
+                print(json.dumps(out), flush=True)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        link.stop()
+        if source is not None:
+            source.stop()
+    return 0 if link.status()["link"] == "ok" else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

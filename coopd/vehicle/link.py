@@ -1,0 +1,410 @@
+"""The MAVLink link thread: heartbeat, stream requests, odometry into the pose buffer, clock sync."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+from pymavlink.dialects.v20 import common as mav
+
+from .clock import ClockSync
+from .odometry import OdometryLimits, OdometryTracker
+from .pose_buffer import PoseBuffer, PoseSample
+from .transport import Transport, make_transport
+
+log = logging.getLogger("coopd.vehicle")
+
+READ_TIMEOUT_S = 0.02
+MAX_MESSAGES_PER_READ = 512
+FC_REBOOT_BACKSTEP_S = 1.0
+FALLBACK_AFTER_S = 1.0
+NON_VEHICLE_TYPES = (
+    mav.MAV_TYPE_GCS,
+    mav.MAV_TYPE_ONBOARD_CONTROLLER,
+    mav.MAV_TYPE_GIMBAL,
+    mav.MAV_TYPE_ADSB,
+)
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """How to reach the flight controller and what to expect from it."""
+
+    connection: str = "udpin:0.0.0.0:14540"
+    source_system: int = 1
+    source_component: int = mav.MAV_COMP_ID_ONBOARD_COMPUTER
+    target_system: int = 0  # 0: lock onto the first autopilot heartbeat
+    odometry_rate_hz: float = 30.0
+    heartbeat_period_s: float = 1.0
+    timesync_period_s: float = 1.0
+    stream_request_period_s: float = 3.0
+    link_timeout_s: float = 1.5
+    odometry_timeout_s: float = 0.5
+    reopen_backoff_s: tuple[float, float] = (0.2, 5.0)
+    pose_buffer_capacity: int = 1200
+    pose_max_gap_s: float = 0.25
+    odometry: OdometryLimits = field(default_factory=OdometryLimits)
+
+    def __post_init__(self):
+        if not (1 <= self.source_system <= 255 and 1 <= self.source_component <= 255):
+            raise ValueError("source_system and source_component must be within 1..255")
+        if not (0 <= self.target_system <= 255):
+            raise ValueError("target_system must be within 0..255")
+        if not (0.1 <= self.odometry_rate_hz <= 500):
+            raise ValueError("odometry_rate_hz must be within 0.1..500")
+        if not (0 < self.odometry_timeout_s <= self.link_timeout_s <= 60):
+            raise ValueError("need 0 < odometry_timeout_s <= link_timeout_s <= 60")
+
+
+class _Sink:
+    """pymavlink writes packed messages here; they go straight to the transport."""
+
+    def __init__(self):
+        self.transport: Transport | None = None
+
+    def write(self, buf: bytes) -> None:
+        if self.transport is not None:
+            self.transport.write(bytes(buf))
+
+
+class VehicleLink:
+    """Owns the FC connection and everything learnt from it; run() on its own (highest-priority) thread."""
+
+    def __init__(self, config: LinkConfig = LinkConfig(), transport: Transport | None = None):
+        self.config = config
+        self.transport = transport or make_transport(config.connection)
+        self._sink = _Sink()
+        self._sink.transport = self.transport
+        self.mav = mav.MAVLink(
+            self._sink, srcSystem=config.source_system, srcComponent=config.source_component
+        )
+        self.mav.robust_parsing = True
+        self.poses = PoseBuffer(config.pose_buffer_capacity, config.pose_max_gap_s)
+        self.odometry = OdometryTracker(config.odometry)
+        self.clock = ClockSync()
+        self.counters: Counter = Counter()
+        self.target_system = config.target_system
+        self.state = "connecting"
+        self.native_id: int | None = None
+        self._heartbeat_in_read = False
+        self.max_step_s = 0.0  # longest loop iteration: shows the thread never stalls
+        self._last_heartbeat = -math.inf
+        self._last_rx = -math.inf
+        self._last_odometry = -math.inf
+        self._last_odometry_msg = -math.inf
+        self._timers = {"heartbeat": -math.inf, "timesync": -math.inf, "streams": -math.inf}
+        self._streams_flowing = False
+        self._backoff = config.reopen_backoff_s[0]
+        self._next_open = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the link thread."""
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self.run, name="coopd-mavlink", daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the thread and close the transport."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        self.transport.close()
+
+    def run(self) -> None:
+        """The loop: read (bounded wait), handle, run timers; exceptions are counted, never fatal."""
+        self.native_id = threading.get_native_id()
+        log.info(
+            "MAVLink link starting on %s as %d/%d",
+            self.config.connection,
+            self.config.source_system,
+            self.config.source_component,
+        )
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            try:
+                self.step(t0)
+            except Exception:  # a bug in a handler must not take the link down: count and log once a while
+                self.counters["loop_errors"] += 1
+                if self.counters["loop_errors"] <= 3:
+                    log.exception("MAVLink link loop error (continuing)")
+                self._stop.wait(0.05)
+            self.max_step_s = max(self.max_step_s, time.monotonic() - t0)
+
+    def step(self, now: float) -> None:
+        """One iteration: (re)open if needed, read what arrived within READ_TIMEOUT_S, run timers."""
+        if not self.transport.is_open:
+            self._try_open(now)
+            if not self.transport.is_open:
+                self._stop.wait(min(READ_TIMEOUT_S * 5, max(0.0, self._next_open - now)))
+                self._update_state(time.monotonic())
+                return
+        data = self.transport.read(READ_TIMEOUT_S)
+        if data:
+            self._ingest(data, time.monotonic())
+        now = time.monotonic()
+        self._update_state(now)
+        self._run_timers(now)
+
+    def _try_open(self, now: float) -> None:
+        if now < self._next_open:
+            return
+        try:
+            self.transport.open()
+            self.transport.counters["reopens"] += 1
+            self._backoff = self.config.reopen_backoff_s[0]
+            log.info("MAVLink transport open: %s", self.config.connection)
+        except OSError as e:
+            self.counters["open_failures"] += 1
+            self._next_open = now + self._backoff
+            log.warning(
+                "MAVLink transport %s not available (%s); retry in %.1f s",
+                self.config.connection,
+                e,
+                self._backoff,
+            )
+            self._backoff = min(self._backoff * 2, self.config.reopen_backoff_s[1])
+
+    # -- inbound --------------------------------------------------------------------------------
+
+    def _ingest(self, data: bytes, now: float) -> None:
+        self.counters["rx_bytes"] += len(data)
+        if self.transport.datagrams:
+            self._reset_parser()
+        try:
+            msgs = self.mav.parse_buffer(data) or []
+        except Exception:  # pymavlink raises on some malformed input even with robust parsing
+            self.counters["rx_parse_errors"] += 1
+            return
+        from_fc = False
+        self._heartbeat_in_read = False
+        for m in msgs[:MAX_MESSAGES_PER_READ]:
+            if m.get_type() == "BAD_DATA":
+                self.counters["rx_bad_data"] += 1
+                continue
+            try:
+                from_fc |= self._dispatch(m, now)
+            except (ValueError, TypeError, AttributeError, OverflowError):
+                self.counters["rx_handler_errors"] += 1
+        if from_fc and (self._heartbeat_in_read or self.transport.peer is None):
+            self.transport.accept_source()
+
+    def _reset_parser(self) -> None:
+        """A datagram holds whole packets: a broken one must not swallow the start of the next."""
+        if self.mav.buf_index < len(self.mav.buf):
+            self.counters["rx_partial_discarded"] += 1
+        self.mav.buf = bytearray()
+        self.mav.buf_index = 0
+        self.mav.expected_length = mav.HEADER_LEN_V1 + 2
+        self.mav.have_prefix_error = False
+
+    def _dispatch(self, m, now: float) -> bool:
+        """Handle one message; True if it came from the FC we follow."""
+        kind = m.get_type()
+        src = m.get_srcSystem()
+        if kind == "HEARTBEAT" and self.target_system == 0 and self._is_autopilot(m):
+            self.target_system = src
+            log.info("locked onto autopilot system %d (component %d)", src, m.get_srcComponent())
+        if self.target_system == 0:
+            self.counters["rx_before_lock"] += 1  # no autopilot heartbeat yet: nobody to follow
+            return False
+        if src != self.target_system:
+            self.counters["rx_foreign"] += 1
+            return False
+        self.counters["rx_messages"] += 1
+        self._last_rx = now
+        if self._last_odometry_msg == -math.inf:
+            self._last_odometry_msg = now  # give ODOMETRY FALLBACK_AFTER_S to show up before falling back
+        if kind == "HEARTBEAT":
+            if self._is_autopilot(m):
+                self._last_heartbeat = now
+                self._heartbeat_in_read = True  # the FC's address may move only with its heartbeat
+        elif kind == "ODOMETRY":
+            self._last_odometry_msg = now
+            self._take_pose(m.time_usec * 1e-6, lambda: self.odometry.from_odometry(m), now)
+        elif kind == "ATTITUDE_QUATERNION":
+            self.odometry.on_attitude_quaternion(m)
+        elif kind == "LOCAL_POSITION_NED":
+            if now - self._last_odometry_msg > FALLBACK_AFTER_S:
+                self.counters["fallback_samples"] += 1
+                self._take_pose(m.time_boot_ms * 1e-3, lambda: self.odometry.from_local_position(m), now)
+        elif kind == "TIMESYNC":
+            self._on_timesync(m, now)
+        elif kind == "SYSTEM_TIME":
+            self.clock.on_system_time(m.time_boot_ms, now)
+        elif kind == "COMMAND_ACK" and m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self.counters[f"interval_ack_{m.result}"] += 1
+        return True
+
+    @staticmethod
+    def _is_autopilot(m) -> bool:
+        return m.type not in NON_VEHICLE_TYPES and m.autopilot != mav.MAV_AUTOPILOT_INVALID
+
+    def _take_pose(self, t_fc: float, convert, now: float) -> None:
+        """Detect an FC reboot (time base restarted), convert, and buffer the pose."""
+        newest = self.poses.span()
+        if newest is not None and t_fc < newest[1] - FC_REBOOT_BACKSTEP_S:
+            self.counters["fc_reboots"] += 1
+            log.warning(
+                "FC time went back from %.3f s to %.3f s: FC rebooted, pose buffer and clock reset",
+                newest[1],
+                t_fc,
+            )
+            self.poses.clear()
+            self.odometry.restart_time_base()
+            self.clock.reset()
+            self._streams_flowing = False
+        sample = convert()
+        if sample is None:
+            return
+        if self.poses.append(sample):
+            self._last_odometry = now
+            self._streams_flowing = True
+        else:
+            self.counters["poses_out_of_order"] += 1
+
+    def _on_timesync(self, m, now: float) -> None:
+        now_ns = time.monotonic_ns()
+        if m.tc1 == 0:  # the FC asks us: answer with our clock, as PX4 expects from a companion
+            self.mav.send(self.mav.timesync_encode(now_ns, m.ts1))
+            self.counters["timesync_answered"] += 1
+        else:
+            self.clock.on_timesync_reply(m.tc1, m.ts1, now_ns)
+
+    # -- outbound and state ---------------------------------------------------------------------
+
+    def _run_timers(self, now: float) -> None:
+        cfg, t = self.config, self._timers
+        if now - t["heartbeat"] >= cfg.heartbeat_period_s:
+            t["heartbeat"] = now
+            self.mav.send(
+                self.mav.heartbeat_encode(
+                    mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE
+                )
+            )
+        if self.target_system == 0 or self.state != "ok":
+            return
+        est = self.clock.estimate()
+        period = cfg.timesync_period_s if est is not None and est.samples >= 10 else cfg.timesync_period_s / 5
+        if now - t["timesync"] >= period:
+            t["timesync"] = now
+            self.mav.send(self.mav.timesync_encode(0, self.clock.new_request(time.monotonic_ns())))
+        odometry_quiet = now - self._last_odometry > cfg.odometry_timeout_s
+        if (not self._streams_flowing or odometry_quiet) and now - t[
+            "streams"
+        ] >= cfg.stream_request_period_s:
+            t["streams"] = now
+            self._request_streams()
+
+    def _request_streams(self) -> None:
+        """MAV_CMD_SET_MESSAGE_INTERVAL for what we use (ODOMETRY, its fallback pair, SYSTEM_TIME)."""
+        interval_us = 1e6 / self.config.odometry_rate_hz
+        for msg_id, us in (
+            (mav.MAVLINK_MSG_ID_ODOMETRY, interval_us),
+            (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval_us),
+            (mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, interval_us),
+            (mav.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6),
+        ):
+            self.mav.send(
+                self.mav.command_long_encode(
+                    self.target_system, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, us, 0, 0, 0, 0, 0
+                )
+            )
+        self.counters["stream_requests"] += 1
+        log.info(
+            "requested ODOMETRY/LOCAL_POSITION_NED/ATTITUDE_QUATERNION at %.0f Hz from system %d",
+            self.config.odometry_rate_hz,
+            self.target_system,
+        )
+
+    def _update_state(self, now: float) -> None:
+        alive = now - max(self._last_heartbeat, self._last_rx) <= self.config.link_timeout_s
+        new = "ok" if alive else ("lost" if self._last_rx > -math.inf else "connecting")
+        if new != self.state:
+            with self._lock:
+                old, self.state = self.state, new
+            if new == "ok":
+                self._timers["streams"] = -math.inf  # (re)request streams at once: the FC may have rebooted
+                log.info("FC link up (system %d), was %s", self.target_system, old)
+            else:
+                self.counters["link_losses"] += 1
+                log.warning(
+                    "FC link %s: no traffic for %.1f s; odometry stale, mapping pauses",
+                    new,
+                    now - max(self._last_heartbeat, self._last_rx),
+                )
+
+    # -- what other stages read -----------------------------------------------------------------
+
+    def odometry_stale(self, now: float | None = None) -> bool:
+        """True when no valid odometry arrived within odometry_timeout_s (or the link is down)."""
+        now = time.monotonic() if now is None else now
+        return self.state != "ok" or now - self._last_odometry > self.config.odometry_timeout_s
+
+    def pose_at(self, t_fc: float) -> PoseSample:
+        """Body pose in the map frame at FC time t_fc (raises PoseLookupError)."""
+        return self.poses.at(t_fc)
+
+    def fc_time_now(self) -> float | None:
+        """Our best estimate of the FC clock now (seconds since FC boot), or None."""
+        est = self.clock.estimate()
+        return None if est is None else est.fc_time(time.monotonic())
+
+    def status(self) -> dict:
+        """Snapshot for `coopctl status` and logs."""
+        now = time.monotonic()
+        est = self.clock.estimate()
+        latest = self.poses.latest()
+        span = self.poses.span()
+        counters = dict(self.counters)
+        counters.update({f"odometry_{k}": v for k, v in dict(self.odometry.counters).items()})
+        counters.update({f"clock_{k}": v for k, v in dict(self.clock.counters).items()})
+        counters.update({f"transport_{k}": v for k, v in dict(self.transport.counters).items()})
+        return {
+            "connection": self.config.connection,
+            "link": self.state,
+            "target_system": self.target_system,
+            "heartbeat_age_s": None
+            if self._last_heartbeat == -math.inf
+            else round(now - self._last_heartbeat, 3),
+            "odometry_age_s": None
+            if self._last_odometry == -math.inf
+            else round(now - self._last_odometry, 3),
+            "odometry_stale": self.odometry_stale(now),
+            "pose": None
+            if latest is None
+            else {
+                "t_fc": latest.t_fc,
+                "position": [round(float(x), 4) for x in latest.position],
+                "quaternion": [round(float(x), 6) for x in latest.quaternion],
+            },
+            "pose_buffer": {
+                "samples": len(self.poses),
+                "span_s": None if span is None else span[1] - span[0],
+            },
+            "map_origin_fc_enu": None
+            if self.odometry.origin_enu is None
+            else [round(float(x), 4) for x in self.odometry.origin_enu],
+            "clock": None
+            if est is None
+            else {
+                "offset_s": est.offset_s,
+                "rate": est.rate,
+                "uncertainty_s": est.uncertainty_s,
+                "samples": est.samples,
+                "source": est.source,
+            },
+            "thread_native_id": self.native_id,
+            "max_loop_s": round(self.max_step_s, 4),
+            "counters": counters,
+        }

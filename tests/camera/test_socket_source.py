@@ -1,0 +1,231 @@
+"""Camera socket client against scripted drivers: frames, hostile input, stalls, restarts, newest wins."""
+
+import struct
+import time
+import tracemalloc
+
+import msgpack
+import numpy as np
+import pytest
+from fake_driver import FakeDriver, depth_of, frame_bytes, header
+
+from coopd.camera import SocketDepthSource, SocketSourceConfig
+
+
+def wait_until(predicate, timeout, poll=0.01):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll)
+    return bool(predicate())
+
+
+@pytest.fixture
+def sock_path(tmp_path):
+    return str(tmp_path / "cam.sock")
+
+
+@pytest.fixture
+def make_source(sock_path):
+    made = []
+
+    def make(**kw):
+        kw.setdefault("stall_timeout_s", 0.4)
+        kw.setdefault("backoff_s", (0.02, 0.2))
+        src = SocketDepthSource(SocketSourceConfig(sock_path, **kw))
+        made.append(src)
+        src.start()
+        return src
+
+    yield make
+    for src in made:
+        t0 = time.monotonic()
+        src.stop()
+        assert time.monotonic() - t0 < 1.5, "stop() must be prompt"
+
+
+def send_frames(seqs, then=None):
+    """Script: send frames with these seqs (t_us = 1000 * (seq + 1)), then call `then` or wait to stop."""
+
+    def script(conn, index, stopping):
+        for s in seqs:
+            conn.sendall(frame_bytes(header(seq=s, t_us=1000 * (s + 1))))
+        if then is not None:
+            then(conn, index, stopping)
+        else:
+            stopping.wait(5)
+
+    return script
+
+
+def test_receives_valid_frames_exactly(sock_path, make_source):
+    drv = FakeDriver(sock_path, send_frames([0]))
+    try:
+        src = make_source()
+        f = src.slot.take(timeout=3.0)
+        assert f is not None and f.seq == 0 and f.t_fc == pytest.approx(0.001)
+        assert f.depth.dtype == np.uint16 and np.array_equal(f.depth, depth_of(header(seq=0)))
+        assert f.intrinsics.width == 8 and f.intrinsics.depth_scale == 0.001
+        assert src.status()["connected"] and src.counters["frames"] == 1
+    finally:
+        drv.close()
+
+
+def test_newest_wins_and_drops_are_counted(sock_path, make_source):
+    drv = FakeDriver(sock_path, send_frames(range(6)))
+    try:
+        src = make_source()
+        assert wait_until(lambda: src.counters["frames"] == 6, 3.0)
+        f = src.slot.take()
+        assert f.seq == 5 and src.slot.dropped == 5 and src.slot.take() is None
+    finally:
+        drv.close()
+
+
+def hostile(payload_for_connection):
+    """Script: connection 0 gets hostile bytes, later connections get one good frame."""
+
+    def script(conn, index, stopping):
+        if index == 0:
+            conn.sendall(payload_for_connection)
+            stopping.wait(5)  # keep the socket open: the client must give up by itself
+        else:
+            conn.sendall(frame_bytes(header(seq=100 + index, t_us=10**6 + index)))
+            stopping.wait(5)
+
+    return script
+
+
+def packed(d):
+    h = msgpack.packb(d)
+    return struct.pack("<I", len(h)) + h
+
+
+HOSTILE = {
+    "zero_header_length": (struct.pack("<I", 0), "protocol_bad_header_length"),
+    "huge_header_length": (struct.pack("<I", 2**31) + b"x" * 64, "protocol_bad_header_length"),
+    "garbage_header": (struct.pack("<I", 16) + b"\xc1" * 16, "protocol_bad_msgpack"),
+    "not_a_map": (packed([1, 2, 3]), "protocol_bad_header"),
+    "oversize_announcement": (packed(header(w=4096, h=4096, n=4096 * 4096 * 2)), "protocol_oversize"),
+    "n_mismatch": (packed(header(n=10**9)), "protocol_bad_size"),
+    "wrong_encoding": (packed(header(enc="rgb8")), "protocol_bad_encoding"),
+    "nan_intrinsics": (packed(header(fx=float("nan"))), "protocol_bad_header"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE))
+def test_hostile_driver_is_dropped_counted_and_reconnected(sock_path, make_source, case):
+    data, counter = HOSTILE[case]
+    drv = FakeDriver(sock_path, hostile(data))
+    try:
+        tracemalloc.start()
+        src = make_source(max_payload_bytes=1 << 20)
+        f = src.slot.take(timeout=3.0)
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        assert f is not None and f.seq >= 101, src.status()  # recovered on a fresh connection
+        assert src.counters[counter] == 1 and src.counters["disconnect_protocol_error"] == 1
+        assert peak < 4 << 20, f"peak allocation {peak} B: announcements must not be trusted"
+    finally:
+        drv.close()
+
+
+def test_truncated_payload_then_eof_delivers_nothing(sock_path, make_source):
+    def script(conn, index, stopping):
+        if index == 0:
+            conn.sendall(frame_bytes(header(seq=1, t_us=5000))[:-7])
+            return  # close mid-payload
+        conn.sendall(frame_bytes(header(seq=2, t_us=6000)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source()
+        f = src.slot.take(timeout=3.0)
+        assert f.seq == 2 and src.counters["frames"] == 1 and src.counters["disconnect_eof"] >= 1
+    finally:
+        drv.close()
+
+
+def test_stalled_connection_is_abandoned_and_reconnected(sock_path, make_source):
+    def script(conn, index, stopping):
+        data = frame_bytes(header(seq=index, t_us=1000 + index))
+        if index == 0:
+            conn.sendall(data[:30])  # then silence, socket open
+            stopping.wait(5)
+            return
+        conn.sendall(data)
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        t0 = time.monotonic()
+        src = make_source(stall_timeout_s=0.3)
+        f = src.slot.take(timeout=3.0)
+        assert f is not None and f.seq == 1
+        assert src.counters["disconnect_stall"] == 1 and 0.3 <= time.monotonic() - t0 < 2.0
+    finally:
+        drv.close()
+
+
+def test_driver_restart_reconnects_with_backoff(sock_path, make_source):
+    src = make_source()
+    time.sleep(0.3)  # nobody listening yet: connection attempts fail and back off
+    assert src.counters["connect_failures"] >= 2 and not src.connected
+    drv = FakeDriver(sock_path, send_frames([0]))
+    assert src.slot.take(timeout=3.0) is not None
+    drv.close()  # driver goes away
+    assert wait_until(lambda: not src.connected, 2.0)
+    drv = FakeDriver(sock_path, send_frames([0, 1]))  # restarted driver: sequence and clock restart
+    try:
+        assert wait_until(lambda: src.counters["frames"] >= 3, 3.0), src.status()
+        assert src.counters["connects"] >= 2  # a connect may land in the dying listener's backlog
+    finally:
+        drv.close()
+
+
+def test_non_increasing_timestamps_are_dropped_and_seq_gaps_counted(sock_path, make_source):
+    def script(conn, index, stopping):
+        for seq, t in ((0, 1000), (1, 1000), (2, 900), (5, 2000)):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=t)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source()
+        assert wait_until(lambda: src.counters["frames"] == 2, 3.0)
+        assert src.counters["dropped_timestamp_not_increasing"] == 2 and src.counters["seq_gaps"] == 1
+    finally:
+        drv.close()
+
+
+def test_bad_configuration_is_refused():
+    for kw in (
+        {"address": ""},
+        {"address": "/x", "max_payload_bytes": 0},
+        {"address": "/x", "stall_timeout_s": 0},
+    ):
+        with pytest.raises(ValueError):
+            SocketSourceConfig(**kw)
+
+
+def test_a_byte_trickling_driver_is_abandoned(sock_path, make_source):
+    def script(conn, index, stopping):
+        data = frame_bytes(header(seq=index, t_us=1000 + index))
+        if index == 0:
+            for b in data[:200]:  # one byte every 50 ms: never a stall, never a frame
+                if stopping.wait(0.05):
+                    return
+                conn.sendall(bytes([b]))
+            return
+        conn.sendall(data)
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(stall_timeout_s=0.3, frame_timeout_s=0.5)
+        f = src.slot.take(timeout=3.0)
+        assert f is not None and f.seq == 1 and src.counters["disconnect_slow_frame"] == 1
+    finally:
+        drv.close()

@@ -1,0 +1,92 @@
+"""Thread priorities: per-thread nice applied, visible in /proc/self/task/<tid>/stat, reported."""
+
+import os
+import sys
+import threading
+
+import pytest
+
+from coopd.daemon.threads import ROLE_NICE, ThreadPriorities, read_nice
+
+
+def run_in_thread(fn):
+    out, hold = {}, threading.Event()
+
+    def body():
+        out["value"] = fn()
+        out["tid"] = threading.get_native_id()
+        out["nice_proc"] = read_nice(out["tid"])
+        hold.wait(5)
+
+    t = threading.Thread(target=body, name="test-role")
+    t.start()
+    while "nice_proc" not in out and t.is_alive():
+        t.join(0.01)
+    return out, hold, t
+
+
+def test_low_priority_role_is_visible_in_proc():
+    prios = ThreadPriorities()
+    out, hold, t = run_in_thread(lambda: prios.apply("merging"))
+    try:
+        assert out["value"].requested == 10 and out["value"].applied == 10 and out["value"].note == ""
+        assert out["nice_proc"] == 10
+        assert read_nice(threading.get_native_id()) != 10  # only that thread changed
+        report = prios.report()
+        assert [(r["role"], r["tid"], r["applied"]) for r in report] == [("merging", out["tid"], 10)]
+    finally:
+        hold.set()
+        t.join()
+    assert prios.report() == []  # ended threads drop out of the report
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="raising priority needs root / CAP_SYS_NICE")
+def test_high_priority_role_with_privilege():
+    prios = ThreadPriorities()
+    out, hold, t = run_in_thread(lambda: prios.apply("mavlink"))
+    try:
+        assert out["value"].applied == ROLE_NICE["mavlink"] == -5 and out["nice_proc"] == -5
+    finally:
+        hold.set()
+        t.join()
+
+
+def test_high_priority_without_privilege_is_reported_not_fatal():
+    """As an unprivileged user (RLIMIT_NICE 0, no CAP_SYS_NICE), mavlink asks -5 and gets 0."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            os.close(r)
+            if os.geteuid() == 0:
+                import resource
+
+                resource.setrlimit(resource.RLIMIT_NICE, (0, 0))
+                os.setgroups([])
+                os.setgid(65534)
+                os.setuid(65534)
+            prios = ThreadPriorities()
+            out, hold, t = run_in_thread(lambda: prios.apply("mavlink"))
+            hold.set()
+            t.join()
+            p = out["value"]
+            os.write(w, f"{p.requested} {p.applied} {out['nice_proc']} {p.note}".encode())
+            code = 0
+        except BaseException as e:  # report, never return into pytest from the child
+            os.write(w, f"error {e!r}".encode())
+        finally:
+            sys.stdout.flush()
+            os._exit(code)
+    os.close(w)
+    with os.fdopen(r) as f:
+        text = f.read()
+    os.waitpid(pid, 0)
+    requested, applied, proc, note = text.split(" ", 3)
+    assert (requested, applied, proc) == ("-5", "0", "0"), text
+    assert "CAP_SYS_NICE" in note
+
+
+def test_unknown_role():
+    with pytest.raises(ValueError, match="unknown thread role"):
+        ThreadPriorities().apply("gpu")

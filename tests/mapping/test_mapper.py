@@ -1,0 +1,201 @@
+import numpy as np
+import pytest
+
+from coopd.grid import UNKNOWN
+from coopd.mapping import FrameRejected, Intrinsics, Mapper, MapperConfig, Pose
+from tests.synthetic_scenes import (
+    camera_pose,
+    hit_keys,
+    occupied_accuracy,
+    render_depth,
+    room_scene,
+    survey_poses,
+)
+
+INTR = Intrinsics.from_fov(160, 120, 87.0)
+
+
+def _fly(config: MapperConfig, scene, poses, noise=0.0, seed=1):
+    rng = np.random.default_rng(seed)
+    mapper = Mapper(config)
+    seen = set()
+    for pose in poses:
+        depth = render_depth(scene, INTR, pose)
+        seen |= hit_keys(depth, INTR, pose, config.resolution, config.min_range, config.max_range)
+        if noise:
+            depth = (depth * (1 + rng.normal(0, noise, depth.shape))).astype(np.float32)
+        mapper.integrate(depth, INTR, pose)
+    return mapper, seen
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return room_scene(0)
+
+
+def test_accuracy_with_perfect_poses(scene):
+    mapper, seen = _fly(MapperConfig(), scene, survey_poses())
+    acc = occupied_accuracy(mapper.grid, scene, seen)
+    assert acc["precision"] >= 0.95 and acc["recall"] >= 0.95, acc
+    assert acc["free_accuracy"] >= 0.99, acc
+
+
+def test_accuracy_with_depth_noise(scene):
+    mapper, seen = _fly(MapperConfig(), scene, survey_poses(), noise=0.01)
+    acc = occupied_accuracy(mapper.grid, scene, seen)
+    assert acc["precision"] >= 0.93 and acc["recall"] >= 0.95, acc
+
+
+def test_thesis_per_ray_mode_is_selectable(scene):
+    cfg = MapperConfig(per_frame_dedup=False, miss_decrement=30)
+    mapper, seen = _fly(cfg, scene, survey_poses(2, 6))
+    acc = occupied_accuracy(mapper.grid, scene, seen)
+    assert acc["precision"] >= 0.95        # carving is exact; grazing rays cost recall
+    assert mapper.grid.counts().occupied > 1000
+
+
+@pytest.mark.parametrize("traversal", ["bresenham", "exact"])
+def test_threads_give_identical_grids(scene, traversal):
+    poses = survey_poses(2, 4)
+    one, _ = _fly(MapperConfig(threads=1, traversal=traversal), scene, poses)
+    two, _ = _fly(MapperConfig(threads=2, traversal=traversal), scene, poses)
+    three, _ = _fly(MapperConfig(threads=3, traversal=traversal), scene, poses)
+    assert one.grid.same_cells(two.grid) and one.grid.same_cells(three.grid)
+    for m in (one, two, three):
+        m.close()
+
+
+def test_shared_path_shortcut_is_exact(scene):
+    """Rays ending in one cell share a Bresenham path; walking each (hit_depth > 0 disables the
+    shortcut, tiny enough to change nothing else) must give the same grid."""
+    poses = survey_poses(2, 4)
+    fast, _ = _fly(MapperConfig(hit_depth=0.0), scene, poses)
+    slow, _ = _fly(MapperConfig(hit_depth=1e-9), scene, poses)
+    assert fast.grid.same_cells(slow.grid)
+
+
+def test_single_wall_geometry():
+    """A camera 2 m in front of a wall: the wall cells are occupied, the space before it free."""
+    from tests.synthetic_scenes import BoxScene
+    scene = BoxScene(np.array([[[2.0, -3.0, -3.0], [2.2, 3.0, 3.0]]]))
+    pose = camera_pose([0.0, 0.0, 0.0], yaw=0.0)
+    depth = render_depth(scene, INTR, pose)
+    assert np.allclose(depth[60, 80], 2.0, atol=1e-6)
+    mapper = Mapper(MapperConfig(gap_fill=False))
+    stats = mapper.integrate(depth, INTR, pose)
+    assert stats.rays == 160 * 120 and stats.invalid_pixels == 0
+    g = mapper.grid
+    assert g.values_at_keys([[20, 0, 0]])[0] == 60           # unknown -> 50 -> +10
+    assert np.all(g.values_at_keys([[k, 0, 0] for k in range(1, 20)]) == 35)   # 50 - 15
+    assert g.values_at_keys([[21, 0, 0]])[0] == UNKNOWN       # behind the wall
+
+
+def test_max_range_truncates_without_hits():
+    from tests.synthetic_scenes import BoxScene
+    scene = BoxScene(np.array([[[8.0, -30.0, -30.0], [8.2, 30.0, 30.0]]]))
+    pose = camera_pose([0.0, 0.0, 0.0], yaw=0.0)
+    depth = render_depth(scene, INTR, pose)
+    mapper = Mapper(MapperConfig(max_range=5.0, gap_fill=False))
+    stats = mapper.integrate(depth, INTR, pose)
+    assert stats.invalid_pixels == 160 * 120 and stats.rays == 0      # z = 8 m > max range
+    depth2 = np.full_like(depth, 4.5)                                  # corners longer than 5 m
+    stats2 = mapper.integrate(depth2, INTR, pose)
+    assert stats2.truncated_rays > 0 and 0 < stats2.hits < stats2.cells_updated
+    assert mapper.grid.counts().occupied > 0
+    far = mapper.grid.values_at([[0.0, 0.0, 4.5]])   # optical z is forward = map x for yaw 0
+    assert far[0] == UNKNOWN
+
+
+def test_z16_and_float_frames_agree(scene):
+    pose = survey_poses(1, 1)[0]
+    depth = render_depth(scene, INTR, pose)
+    z16 = np.round(depth / 0.001).astype(np.uint16)
+    a, b = Mapper(), Mapper()
+    a.integrate(depth, INTR, pose)
+    b.integrate(z16, Intrinsics.from_fov(160, 120, 87.0, depth_scale=0.001), pose)
+    diff = np.argwhere(a.grid.cells != b.grid.cells)
+    assert len(diff) < 0.001 * a.grid.counts().known    # mm rounding moves a handful of end cells
+
+
+def test_grid_grows_as_rays_leave_it(scene):
+    mapper = Mapper(MapperConfig())
+    assert mapper.grid.shape == (40, 40, 20)
+    stats = mapper.integrate(render_depth(scene, INTR, survey_poses(1, 1)[0]), INTR, survey_poses(1, 1)[0])
+    assert stats.grew and mapper.grid.shape[0] > 40
+    lo, hi = mapper.grid.known_key_bounds()
+    glo, ghi = mapper.grid.key_bounds()
+    assert np.all(lo - glo >= mapper.grid.growth.margin) and np.all(ghi - hi >= mapper.grid.growth.margin)
+
+
+# ----------------------------------------------------------------------------- hostile input
+GOOD_POSE = camera_pose([0.0, 0.0, 1.0], 0.0)
+
+
+@pytest.mark.parametrize("depth", [
+    np.zeros((120, 161), np.float32),               # wrong shape
+    np.zeros((120, 160), np.int32),                 # wrong dtype
+    np.zeros((120, 160, 3), np.uint16),             # colour image
+    [[1.0] * 160] * 120,                            # not an array
+])
+def test_bad_frames_are_rejected_and_grid_unchanged(depth):
+    mapper = Mapper()
+    before = mapper.grid.cells.copy()
+    with pytest.raises(FrameRejected):
+        mapper.integrate(depth, INTR, GOOD_POSE)
+    assert np.array_equal(mapper.grid.cells, before)
+    assert mapper.totals.frames_rejected == 1
+
+
+@pytest.mark.parametrize("fill", [np.nan, 0.0, np.inf, -1.0, 1e30])
+def test_invalid_pixels_are_skipped_and_counted(fill):
+    mapper = Mapper()
+    before = mapper.grid.cells.copy()
+    stats = mapper.integrate(np.full((120, 160), fill, np.float32), INTR, GOOD_POSE)
+    assert stats.rays == 0 and stats.invalid_pixels == 160 * 120
+    assert np.array_equal(mapper.grid.cells, before)
+
+
+@pytest.mark.parametrize("kwargs", [
+    dict(width=160, height=120, fx=0.0, fy=100.0, cx=80.0, cy=60.0),
+    dict(width=160, height=120, fx=np.nan, fy=100.0, cx=80.0, cy=60.0),
+    dict(width=160, height=120, fx=100.0, fy=100.0, cx=1e9, cy=60.0),
+    dict(width=0, height=120, fx=100.0, fy=100.0, cx=80.0, cy=60.0),
+    dict(width=100000, height=120, fx=100.0, fy=100.0, cx=80.0, cy=60.0),
+    dict(width=160, height=120, fx=100.0, fy=100.0, cx=80.0, cy=60.0, depth_scale=0.0),
+])
+def test_absurd_intrinsics_are_rejected(kwargs):
+    with pytest.raises(FrameRejected):
+        Intrinsics(**kwargs)
+
+
+@pytest.mark.parametrize("position,quaternion", [
+    ([np.nan, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]),
+    ([0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 0.0]),
+    ([0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]),          # not unit
+    ([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]),
+    ([0.0, 0.0], [1.0, 0.0, 0.0, 0.0]),
+])
+def test_bad_poses_are_rejected(position, quaternion):
+    with pytest.raises(FrameRejected):
+        Pose(position, quaternion)
+
+
+def test_slightly_off_unit_quaternion_is_normalised():
+    p = Pose([0, 0, 0], [1.02, 0.0, 0.0, 0.0])
+    assert np.isclose(np.linalg.norm(p.quaternion), 1.0)
+
+
+def test_far_away_pose_cannot_allocate_without_bound():
+    mapper = Mapper()
+    pose = camera_pose([1e6, 0.0, 0.0], 0.0)
+    before = mapper.grid.cells.copy()
+    with pytest.raises(FrameRejected):
+        mapper.integrate(np.full((120, 160), 2.0, np.float32), INTR, pose)
+    assert np.array_equal(mapper.grid.cells, before)
+
+
+def test_config_validation_names_the_problem():
+    with pytest.raises(ValueError, match="traversal"):
+        MapperConfig(traversal="magic")
+    with pytest.raises(ValueError, match="range"):
+        MapperConfig(min_range=5.0, max_range=1.0)
