@@ -40,12 +40,29 @@ def truth_b_to_a(a: FlightMap, b: FlightMap) -> np.ndarray:
     return invert(a.map_in_world) @ b.map_in_world
 
 
-def reported_pose(sim, index: int, noisy: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(position, rotation) of the body in the reporting frame, from the pose the camera renders at."""
+def true_pose_at(sim, index: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """World position and rotation of a body at time t, interpolated in its logged true trajectory."""
+    from firmware_sim.frames import quat_to_mat
+
+    traj = sim.trajectory(index)
+    k = int(np.clip(np.searchsorted(traj[:, 0], t), 1, len(traj) - 1))
+    t0, t1 = traj[k - 1, 0], traj[k, 0]
+    w = float(np.clip((t - t0) / max(t1 - t0, 1e-9), 0.0, 1.0))
+    q0, q1 = traj[k - 1, 4:8], traj[k, 4:8] * np.sign(np.dot(traj[k - 1, 4:8], traj[k, 4:8]) or 1.0)
+    q = (1 - w) * q0 + w * q1
+    return (1 - w) * traj[k - 1, 1:4] + w * traj[k, 1:4], quat_to_mat(q / np.linalg.norm(q))
+
+
+def reported_pose(sim, index: int, noisy: bool, delay_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(position, rotation) of the body in the reporting frame: the pose the camera renders at, or
+    the estimate delay_s earlier (a frame stamped late against the odometry)."""
     v = sim.vehicle(index)
-    pos_w = sim.data.xpos[v.body_id].copy()
-    rot_w = sim.data.xmat[v.body_id].reshape(3, 3).copy()
-    p, r, vel = v.odometry.estimate(sim.time, pos_w, rot_w, np.zeros(3))
+    if delay_s > 0:
+        pos_w, rot_w = true_pose_at(sim, index, sim.time - delay_s)
+    else:
+        pos_w = sim.data.xpos[v.body_id].copy()
+        rot_w = sim.data.xmat[v.body_id].reshape(3, 3).copy()
+    p, r, vel = v.odometry.estimate(sim.time - delay_s, pos_w, rot_w, np.zeros(3))
     if noisy:
         p, r, _ = v.odometry.noisy(p, r, vel)
     return p, r
@@ -69,29 +86,35 @@ def start_lap_missions(sim, laps: int) -> None:
             v.fc.start_mission(sim.time, 0)
 
 
-def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, max_flight_s: float = 900.0,
-        noisy_poses: bool = True, config: MapperConfig | None = None) -> list[FlightMap]:
-    """Fly every drone's built-in route `laps` times in-process and return each drone's local map."""
+def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s: float = 0.0,
+        pose_delay_s: float = 0.0, max_flight_s: float = 900.0, noisy_poses: bool = True,
+        config: MapperConfig | None = None) -> list[FlightMap]:
+    """Fly every drone's built-in route `laps` times in-process and return each drone's local map.
+
+    ground_s: seconds the drones sit on the ground, mapping and drifting, before they take off (as
+    when the daemons start well before the mission). pose_delay_s: each frame is mapped at the pose
+    of that much earlier (camera and odometry clocks out of step)."""
     from firmware_sim.simulation import Simulation
     from firmware_sim.worlds import build_world
 
     sim = Simulation(build_world(world_name, seed), n_vehicles, seed=seed, mavlink=False)
-    start_lap_missions(sim, laps)
     origins = [reported_pose(sim, i, noisy_poses)[0] for i in range(n_vehicles)]
     mappers = [Mapper(config or MapperConfig()) for _ in range(n_vehicles)]
     mount = CameraMount()
 
     def sink(i, header, z16):
-        if sim.route_finished(i):
+        if sim.time > ground_s and sim.route_finished(i):
             return
-        p, r = reported_pose(sim, i, noisy_poses)
+        p, r = reported_pose(sim, i, noisy_poses, pose_delay_s)
         intr = Intrinsics(header["w"], header["h"], header["fx"], header["fy"], header["cx"], header["cy"],
                           header["scale"])
         body = Pose(p - origins[i], matrix_to_quat(r))
         mappers[i].integrate(z16, intr, mount.camera_pose(body), header["t_us"] * 1e-6)
 
     sim.frame_sink = sink
-    while sim.time < max_flight_s and not all(sim.route_finished(i) for i in range(n_vehicles)):
+    sim.step(ground_s)
+    start_lap_missions(sim, laps)
+    while sim.time < max_flight_s + ground_s and not all(sim.route_finished(i) for i in range(n_vehicles)):
         sim.step(1.0)
     out = []
     for i, m in enumerate(mappers):
@@ -102,9 +125,11 @@ def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, max_flig
     return out
 
 
-def cache_path(world_name: str, seed: int, n_vehicles: int, laps: int, cache_dir: Path = CACHE_DIR) -> Path:
+def cache_path(world_name: str, seed: int, n_vehicles: int, laps: int, ground_s: float, pose_delay_s: float,
+               cache_dir: Path = CACHE_DIR) -> Path:
     """Where flight_maps keeps one flight's maps."""
-    suffix = "" if laps == 1 else f"_l{laps}"
+    suffix = ("" if laps == 1 else f"_l{laps}") + ("" if ground_s == 0 else f"_g{ground_s:g}") + \
+        ("" if pose_delay_s == 0 else f"_d{pose_delay_s:g}")
     return Path(cache_dir) / f"{world_name}_s{seed}_n{n_vehicles}{suffix}.npz"
 
 
@@ -135,13 +160,13 @@ def load(path: Path, world_name: str, seed: int) -> list[FlightMap]:
     return out
 
 
-def flight_maps(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1,
-                cache_dir: Path = CACHE_DIR) -> list[FlightMap]:
+def flight_maps(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s: float = 0.0,
+                pose_delay_s: float = 0.0, cache_dir: Path = CACHE_DIR) -> list[FlightMap]:
     """Cached fly(): the maps of one world and seed, flown once and read back afterwards."""
-    path = cache_path(world_name, seed, n_vehicles, laps, cache_dir)
+    path = cache_path(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, cache_dir)
     if path.exists():
         return load(path, world_name, seed)
-    maps = fly(world_name, seed, n_vehicles, laps)
+    maps = fly(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s)
     save(maps, path)
     return maps
 

@@ -5,7 +5,8 @@ For every world and seed, every ordered pair of drones goes through merge_pair (
 different worlds (full pipeline) and each correct pair's true transform perturbed by 1-3 m and/or
 10-90 deg, refined and validated as a search hypothesis would be (pair.judge).
 Prints a per-world table and writes out/bench/merge_sim.json.
-Usage: scripts/benchmarks/merge_sim.py [--worlds a,b] [--seeds 1,2] [--vehicles 3] [--laps 1]
+Usage: scripts/benchmarks/merge_sim.py [--worlds a,b] [--seeds 1,2] [--vehicles 3] [--laps 1] [--ground-s 0]
+       [--pose-delay-s 0]
 """
 
 import argparse
@@ -72,12 +73,15 @@ def main():
     ap.add_argument("--seeds", default="1,2")
     ap.add_argument("--vehicles", type=int, default=3)
     ap.add_argument("--laps", type=int, default=1, help="times each drone flies its route (more drift)")
+    ap.add_argument("--ground-s", type=float, default=0.0, help="seconds mapped on the ground before takeoff")
+    ap.add_argument("--pose-delay-s", type=float, default=0.0, help="pose lag of each frame")
     ap.add_argument("--tol-m", type=float, default=0.3)
     ap.add_argument("--tol-deg", type=float, default=3.0)
     ap.add_argument("--out", default="out/bench/merge_sim.json")
     args = ap.parse_args()
     params = coopd_params()
-    flights = [simset.flight_maps(w, int(s), args.vehicles, args.laps) for w in args.worlds.split(",")
+    flights = [simset.flight_maps(w, int(s), args.vehicles, args.laps, args.ground_s,
+                                  args.pose_delay_s) for w in args.worlds.split(",")
                for s in args.seeds.split(",")]
     report = {"params": {k: getattr(params, k) for k in ("min_score", "min_agreement", "min_overlap",
                                                          "min_margin")}, "pairs": [], "cross_world": [],
