@@ -6,7 +6,7 @@ different worlds (full pipeline) and each correct pair's true transform perturbe
 10-90 deg, refined and validated as a search hypothesis would be (pair.judge).
 Prints a per-world table and writes out/bench/merge_sim.json.
 Usage: scripts/benchmarks/merge_sim.py [--worlds a,b] [--seeds 1,2] [--vehicles 3] [--laps 1] [--ground-s 0]
-       [--pose-delay-s 0]
+       [--pose-delay-s 0] [--set name=value,...]
 """
 
 import argparse
@@ -43,6 +43,15 @@ def judge(a, b, t, params):
                        "accepted" if ok else "rejected", overlap)
 
 
+def with_overrides(params, text):
+    """params with 'name=value,...' applied (values parsed as the field's current type)."""
+    changes = {}
+    for item in filter(None, text.split(",")):
+        name, value = item.split("=")
+        changes[name] = type(getattr(params, name))(value)
+    return params.with_(**changes)
+
+
 def key(m):
     return m.world, m.seed, m.vehicle
 
@@ -77,15 +86,16 @@ def main():
     ap.add_argument("--pose-delay-s", type=float, default=0.0, help="pose lag of each frame")
     ap.add_argument("--tol-m", type=float, default=0.3)
     ap.add_argument("--tol-deg", type=float, default=3.0)
+    ap.add_argument("--set", default="", help="parameter overrides, e.g. min_score=0.96,min_margin=0.1")
     ap.add_argument("--out", default="out/bench/merge_sim.json")
     args = ap.parse_args()
-    params = coopd_params()
+    params = with_overrides(coopd_params(), args.set)
     flights = [simset.flight_maps(w, int(s), args.vehicles, args.laps, args.ground_s,
                                   args.pose_delay_s) for w in args.worlds.split(",")
                for s in args.seeds.split(",")]
     report = {"params": {k: getattr(params, k) for k in ("min_score", "min_agreement", "min_overlap",
-                                                         "min_margin")}, "pairs": [], "cross_world": [],
-              "perturbed": []}
+                                                         "min_margin", "refine_iterations")},
+              "pairs": [], "cross_world": [], "perturbed": []}
     prepared = {}
     for maps in flights:
         for m in maps:
