@@ -112,7 +112,8 @@ def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s
         mappers[i].integrate(z16, intr, mount.camera_pose(body), header["t_us"] * 1e-6)
 
     sim.frame_sink = sink
-    sim.step(ground_s)
+    if ground_s > 0:
+        sim.step(ground_s)
     start_lap_missions(sim, laps)
     while sim.time < max_flight_s + ground_s and not all(sim.route_finished(i) for i in range(n_vehicles)):
         sim.step(1.0)
