@@ -1,4 +1,7 @@
-"""Merging on real flight maps: drones fly small_house in firmware_sim and map with drifting odometry."""
+"""Merging on real flight maps: drones fly firmware_sim worlds and map with drifting odometry.
+
+small_house is indoor with walls to the top; the racetrack is outdoor with 0.9 m barriers and no
+ceiling (the yaw search's slab must stay tall enough there)."""
 
 import math
 
@@ -12,9 +15,10 @@ from coopd.merging.pair import judge, merge_prepared, prepare
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope="module")
-def flight():
-    maps = simset.fly("small_house", seed=2, n_vehicles=3)
+@pytest.fixture(scope="module", params=[("small_house", 2), ("racetrack", 1)], ids=lambda p: p[0])
+def flight(request):
+    world, seed = request.param
+    maps = simset.fly(world, seed=seed, n_vehicles=3)
     params = coopd_params()
     return maps, [prepare(m.grid, params) for m in maps], params
 
@@ -55,7 +59,7 @@ def test_flight_maps_are_cached_and_reloaded(tmp_path, flight):
     maps, _, _ = flight
     path = tmp_path / "f.npz"
     simset.save(maps, path)
-    back = simset.load(path, "small_house", 2)
+    back = simset.load(path, maps[0].world, maps[0].seed)
     assert len(back) == len(maps)
     for m, b in zip(maps, back, strict=True):
         np.testing.assert_array_equal(m.grid.cells, b.grid.cells)
