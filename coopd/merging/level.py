@@ -51,19 +51,63 @@ def _sharpness(pts: np.ndarray, roll: float, pitch: float, bin_m: float) -> floa
     return float(np.sum(h.astype(np.float64) ** 2))
 
 
+def _rotation_onto_z(n: np.ndarray) -> np.ndarray:
+    """Smallest rotation carrying the unit vector n onto +z (Rodrigues; no yaw component)."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(n, z)
+    s, c = float(np.linalg.norm(axis)), float(n @ z)
+    if s < 1e-12:
+        return np.eye(3)
+    k = axis / s
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * kx + (1 - c) * kx @ kx
+
+
+def _fit_parallel_planes(pts: np.ndarray, r0: np.ndarray, band_m: float, layers: int = 2) -> np.ndarray:
+    """Common normal of the most populated horizontal layers (after turning by r0), by least squares
+    z = a x + b y + c_k with one intercept per layer."""
+    z = pts @ r0[2]
+    h = np.bincount(np.floor((z - z.min()) / band_m).astype(np.int64))
+    peaks = []
+    for i in np.argsort(h)[::-1]:
+        if all(abs(int(i) - j) * band_m > 0.5 for j in peaks):
+            peaks.append(int(i))
+        if len(peaks) == layers:
+            break
+    cols, rows_z = [], []
+    for k, i in enumerate(peaks):
+        centre = z.min() + (i + 0.5) * band_m
+        sel = np.abs(z - centre) <= 1.5 * band_m
+        if sel.sum() < 30:
+            continue
+        block = np.zeros((int(sel.sum()), 2 + len(peaks)))
+        block[:, 0], block[:, 1], block[:, 2 + k] = pts[sel, 0], pts[sel, 1], 1.0
+        cols.append(block)
+        rows_z.append(pts[sel, 2])
+    if not cols:
+        return r0[2]
+    a = np.concatenate(cols)
+    sol, *_ = np.linalg.lstsq(a, np.concatenate(rows_z), rcond=None)
+    n = np.array([-sol[0], -sol[1], 1.0])
+    return n / np.linalg.norm(n)
+
+
 def level_transform(grid: OccupancyGrid, threshold: int, max_tilt_deg: float = 5.0,
                     bin_m: float = 0.05, min_tilt_deg: float = 0.3) -> np.ndarray:
-    """4x4 rotation (about the map origin) that levels the map: coarse 1-degree grid, then 0.25.
-    Identity when the tilt found is below min_tilt_deg (an IMU-aligned map needs no resampling)."""
+    """4x4 rotation (about the map origin) that levels the map: the sharpest height histogram over a
+    1-degree grid of tilts, then a least-squares fit of the two most populated horizontal layers
+    (floor and ceiling) with a shared normal. Identity when the tilt found is below min_tilt_deg (an
+    IMU-aligned map needs no resampling)."""
     pts = horizontal_surface_points(grid, threshold)
     if len(pts) < 100:
         return np.eye(4)
-    best = (0.0, 0.0)
-    for step, span in ((1.0, max_tilt_deg), (0.25, 1.0)):
-        offsets = np.radians(np.arange(-span, span + 1e-9, step))
-        cands = [(best[0] + a, best[1] + b) for a in offsets for b in offsets]
-        scores = [_sharpness(pts, a, b, bin_m) for a, b in cands]
-        best = cands[int(np.argmax(scores))]
-    if np.hypot(*best) < np.radians(min_tilt_deg):
+    offsets = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, 1.0))
+    cands = [(a, b) for a in offsets for b in offsets]
+    scores = [_sharpness(pts, a, b, bin_m) for a, b in cands]
+    r = euler_to_matrix(*cands[int(np.argmax(scores))], 0.0)
+    for _ in range(2):
+        n = _fit_parallel_planes(pts, r, 2 * grid.resolution)
+        r = _rotation_onto_z(n)
+    if np.degrees(np.arccos(np.clip(r[2, 2], -1.0, 1.0))) < min_tilt_deg:
         return np.eye(4)
-    return rigid(euler_to_matrix(best[0], best[1], 0.0))
+    return rigid(r)
