@@ -22,25 +22,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coopd.geometry import rigid, rotation_angle_deg, rotation_z  # noqa: E402
 from coopd.merging import simset  # noqa: E402
-from coopd.merging.pair import MergeResult, merge_prepared, prepare  # noqa: E402
+from coopd.merging.pair import judge, merge_prepared, prepare  # noqa: E402
 from coopd.merging.params import coopd_params  # noqa: E402
-from coopd.merging.refine import icp  # noqa: E402
-from coopd.merging.validation import agreement  # noqa: E402
 
 PERTURBATIONS = [(1.0, 0.0), (2.0, 0.0), (3.0, 0.0), (0.0, 10.0), (0.0, 30.0), (0.0, 90.0), (1.5, 20.0),
                  (2.5, 45.0)]
 """(shift m, yaw deg) applied to the true transform of every pair."""
-
-
-def judge(a, b, t, params):
-    """A hypothesis t refined and validated as merge_prepared does (no runner-up test)."""
-    src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
-    t, frac = icp(a.tree, a.summary.occupied_m, src, t, params.refine_iterations, a.grid.resolution)
-    ag = agreement(a.summary, b.summary, t)
-    overlap = ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
-    ok = ag.agree >= params.min_agreement and overlap >= params.min_overlap and ag.score >= params.min_score
-    return MergeResult(ok, t, int(frac * len(src)), ag.score, ag.agree, ag.conflicts, 0.0,
-                       "accepted" if ok else "rejected", overlap)
 
 
 def with_overrides(params, text):
