@@ -103,6 +103,45 @@ def _feature_candidates(a: PreparedMap, b: PreparedMap, params: MergeParams, tm:
     return [Candidate(h.transform, h.inlier_count, params.ransac_model) for h in hyps]
 
 
+def _refined(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) -> Candidate:
+    """The hypothesis pulled onto a's occupied cells by ICP (unchanged when refinement is off)."""
+    if not (params.refine and a.tree is not None and len(b.summary.occupied_m)):
+        return c
+    src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
+    t, frac = icp(a.tree, a.summary.occupied_m, src, c.transform, params.refine_iterations, a.grid.resolution)
+    inliers = int(round(frac * len(src))) if c.source in ("search", "given") else c.inliers
+    return Candidate(t, inliers, c.source)
+
+
+def _share(ag: Agreement, a: PreparedMap, b: PreparedMap) -> float:
+    """Agreeing share of both maps' vertical-structure samples."""
+    return ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
+
+
+def _rejection(ag: Agreement, inliers: int, overlap: float, params: MergeParams) -> str | None:
+    """Why a validated hypothesis cannot be accepted on its own merits, or None."""
+    if inliers < params.min_inliers:
+        return f"{inliers} inliers < {params.min_inliers}"
+    if ag.agree < params.min_agreement:
+        return f"overlap too small: {ag.agree} agreeing cells < {params.min_agreement}"
+    if overlap < params.min_overlap:
+        return f"overlap too small: {overlap:.3f} of the maps' structure agrees < {params.min_overlap}"
+    if ag.score < params.min_score:
+        return f"score {ag.score:.3f} < {params.min_score}"
+    return None
+
+
+def judge(a: PreparedMap, b: PreparedMap, transform: np.ndarray, params: MergeParams) -> MergeResult:
+    """One given hypothesis refined and validated alone (no runner-up test): what validation makes of
+    any transform, e.g. a deliberately wrong one."""
+    c = _refined(a, b, Candidate(np.asarray(transform, dtype=np.float64), 0, "given"), params)
+    ag = agreement(a.summary, b.summary, c.transform)
+    overlap = _share(ag, a, b)
+    reason = _rejection(ag, c.inliers, overlap, params) or "accepted"
+    return MergeResult(reason == "accepted", c.transform, c.inliers, ag.score, ag.agree, ag.conflicts, 0.0,
+                       reason, overlap)
+
+
 def _distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
     return (rotation_angle_deg(t1[:3, :3].T @ t2[:3, :3]) > angle_deg
             or float(np.linalg.norm(t1[:3, 3] - t2[:3, 3])) > shift_m)
@@ -128,13 +167,9 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
         cands = [cands[i] for i in np.argsort(coarse)[::-1][: params.refine_candidates]]
     scored: list[tuple[float, Agreement, Candidate]] = []
     for c in cands:
-        t, inl = c.transform, c.inliers
-        if params.refine and a.tree is not None and len(b.summary.occupied_m):
-            src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
-            t, frac = icp(a.tree, a.summary.occupied_m, src, t, params.refine_iterations, a.grid.resolution)
-            inl = int(round(frac * len(src))) if c.source == "search" else inl
-        ag = agreement(a.summary, b.summary, t)
-        scored.append((ag.support(), ag, Candidate(t, inl, c.source)))
+        c = _refined(a, b, c, params)
+        ag = agreement(a.summary, b.summary, c.transform)
+        scored.append((ag.support(), ag, c))
     tm["validate"] = time.perf_counter() - t0
     if not scored:
         return MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0, "no hypothesis (no correspondences)",
@@ -143,17 +178,9 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     _, best_ag, best = scored[0]
     runner = next((s for s in scored[1:] if _distinct(s[2].transform, best.transform)), None)
     runner_score = runner[1].score if runner else 0.0
-    overlap = best_ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
-    reason = "accepted"
-    if best.inliers < params.min_inliers:
-        reason = f"{best.inliers} inliers < {params.min_inliers}"
-    elif best_ag.agree < params.min_agreement:
-        reason = f"overlap too small: {best_ag.agree} agreeing cells < {params.min_agreement}"
-    elif overlap < params.min_overlap:
-        reason = f"overlap too small: {overlap:.3f} of the maps' structure agrees < {params.min_overlap}"
-    elif best_ag.score < params.min_score:
-        reason = f"score {best_ag.score:.3f} < {params.min_score}"
-    elif runner is not None and runner[0] >= (1.0 - params.min_margin) * scored[0][0]:
+    overlap = _share(best_ag, a, b)
+    reason = _rejection(best_ag, best.inliers, overlap, params) or "accepted"
+    if reason == "accepted" and runner is not None and runner[0] >= (1.0 - params.min_margin) * scored[0][0]:
         reason = f"ambiguous: a distinct hypothesis scores {runner[1].score:.3f} with support " \
                  f"{runner[0]:.0f} vs {scored[0][0]:.0f}"
     return MergeResult(reason == "accepted", best.transform, best.inliers, best_ag.score, best_ag.agree,

@@ -123,7 +123,8 @@ def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid,
     hb, zb = height_histogram(b_grid, params.occupied_threshold)
     tz = vertical_offset(ha, za, hb, zb, res)
     floor, ceiling = floor_and_ceiling(ha, za, res)
-    z_lo, z_hi = floor + params.search_slab_margin_m, ceiling - params.search_slab_margin_m
+    margin = min(params.search_slab_margin_m, (ceiling - floor) / 4)
+    z_lo, z_hi = floor + margin, ceiling - margin
     if z_hi <= z_lo:
         z_lo, z_hi = floor, ceiling
     a = top_view(a_grid, z_lo, z_hi, params)
