@@ -20,13 +20,16 @@ class CampaignResult:
     seconds: float = 0.0
     findings: list = field(default_factory=list)
     """(sha1 of the input, first line of the finding) per distinct failing input."""
+    survivors: list = field(default_factory=list)
+    """Inputs kept as extra seeds (they passed): the corpus a later campaign starts from."""
 
 
 def run_mutations(target, rng: random.Random, *, cases: int | None = None, seconds: float | None = None,
-                  findings_dir: Path | None = None, stop_at_first: bool = False) -> CampaignResult:
+                  findings_dir: Path | None = None, stop_at_first: bool = False,
+                  extra_seeds=()) -> CampaignResult:
     """Feed the seeds, then mutants, until `cases` inputs or `seconds` passed; findings saved if asked."""
     result = CampaignResult(target.name)
-    pool = target.seeds()
+    pool = target.seeds() + list(extra_seeds)
     corpus = list(pool)
     t0 = time.monotonic()
 
@@ -57,5 +60,6 @@ def run_mutations(target, rng: random.Random, *, cases: int | None = None, secon
         else:
             if len(corpus) < 512 and rng.random() < 0.02:
                 corpus.append(data)  # keep a few survivors as seeds: deeper mutants over time
+                result.survivors.append(data)
     result.seconds = time.monotonic() - t0
     return result

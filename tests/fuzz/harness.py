@@ -476,3 +476,295 @@ class MavlinkIngestTarget(Target):
             raise Finding("VehicleLink._ingest did not count the datagram")
         if self.link.target_system == 0:
             raise Finding("VehicleLink lost its FC lock on a datagram")
+
+
+# -------------------------------------------------------------------------------- socket targets
+SOCKET_CASE_S = 5.0
+"""A hostile connection must be closed (or answered) by the server within this."""
+
+
+def wait_for(predicate, timeout: float, step: float = 0.002) -> bool:
+    """Poll predicate until true or timeout seconds passed."""
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(step)
+    return bool(predicate())
+
+
+def send_and_drain(sock, data: bytes, timeout: float) -> tuple[bytes, bool]:
+    """Send data, half-close, read until the peer closes; (bytes read, closed within timeout)."""
+    import socket
+    import time
+
+    sock.settimeout(timeout)
+    try:
+        sock.sendall(data)
+        sock.shutdown(socket.SHUT_WR)
+    except OSError:
+        pass  # the server may drop us mid-send: that is a close
+    got = bytearray()
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            chunk = sock.recv(65536)
+        except TimeoutError:
+            return bytes(got), False
+        except OSError:
+            return bytes(got), True
+        if not chunk:
+            return bytes(got), True
+        got += chunk
+    return bytes(got), False
+
+
+TRANSPORT_BS = 256
+
+
+class TransportTarget(Target):
+    """A running SharingService on loopback, one hostile connection per input: dropped, never 'internal'."""
+
+    name = "transport"
+
+    def __init__(self):
+        from coopd.sharing.service import SharingConfig, SharingService, wire_verifier
+        from coopd.sharing.transport import TransportSettings
+
+        self.settings = TransportSettings(
+            block_size=TRANSPORT_BS, connect_timeout=1.0, read_timeout=1.0, handshake_timeout=1.0,
+            idle_timeout=5.0, transfer_base_s=2.0, max_bytes=1 << 20, max_inflight_bytes=4 << 20,
+            max_cells=1 << 16)
+        cfg = SharingConfig(vehicle_id=1, listen_host="127.0.0.1", port=0, transport=self.settings)
+        self.service = SharingService(cfg, verify=wire_verifier(1 << 16, 1 << 20)).start()
+        self.good_version = 0
+
+    def seeds(self) -> list[bytes]:
+        rng = random.Random(6)
+        hello = mtp.hello_frame(mtp.Hello(TRANSPORT_BS, 5, bytes(16), False, 1))
+        msg = wire.encode_map(sample_grid(rng), wire.MapMeta(5, 1, 1.0))
+        transfer = b"".join(bytes(b) for b in mtp.encode_transfer(msg, TRANSPORT_BS))
+        offer = mtp.offer_frame(6, 3, TRANSPORT_BS)
+        return [hello + transfer, hello + offer + transfer, hello, transfer]
+
+    def internal_failures(self) -> int:
+        snap = self.service.peers.snapshot()
+        counts = [p["failures"] for p in snap["peers"]] + list(snap["unidentified_failures"].values())
+        return sum(c.get("internal", 0) for c in counts)
+
+    def check(self, data: bytes) -> None:
+        import socket
+
+        before = self.internal_failures()
+        with socket.create_connection(self.service.address, timeout=SOCKET_CASE_S) as s:
+            _, closed = send_and_drain(s, data, SOCKET_CASE_S)
+        if not closed:
+            raise Finding(f"transport: connection still open {SOCKET_CASE_S} s after a hostile stream ended")
+        if not wait_for(lambda: self.service.stats()["open_connections"] == 0, SOCKET_CASE_S):
+            raise Finding("transport: the server kept serving a connection the peer had closed")
+        if self.internal_failures() != before:
+            raise Finding("transport: a hostile stream caused an internal error in the server")
+
+    def good_peer_delivers(self) -> None:
+        """Finding unless a well-behaved peer can still send a map and get it acknowledged."""
+        from coopd.sharing.transport import PeerLink
+
+        self.good_version += 1
+        host, port = self.service.address
+        msg = wire.encode_map(sample_grid(random.Random(7)), wire.MapMeta(9, self.good_version, 2.0))
+        link = PeerLink.connect(host, port, self.settings, 9)
+        try:
+            status, _ = link.send_map(msg)
+        finally:
+            link.close()
+        if status != mtp.ACK_OK:
+            raise Finding(f"transport: a good peer's map got ack status {status} after the fuzzing")
+
+    def close(self) -> None:
+        try:
+            self.good_peer_delivers()
+        finally:
+            self.service.stop()
+
+
+class ControlTarget(Target):
+    """A ControlServer with fake handlers, one hostile request per connection: a reply or a close."""
+
+    name = "control"
+
+    def __init__(self, directory):
+        import os
+
+        from coopd.daemon.control import BlobReply, ControlServer
+
+        handlers = {"status": lambda args: {"echo": args},
+                    "blob": lambda args: BlobReply({"n": 3}, b"abc")}
+        self.server = ControlServer(os.path.join(directory, "c.sock"), handlers, max_request_bytes=4096,
+                                    max_clients=4, timeout_s=1.0).start()
+
+    def seeds(self) -> list[bytes]:
+        from coopd.daemon.control import encode_frame
+
+        return [encode_frame({"v": 1, "cmd": "status", "args": {"a": [1, 2.5, None, "x"]}}),
+                encode_frame({"v": 1, "cmd": "blob", "args": {}}), encode_frame({"v": 1, "cmd": "ping"}),
+                encode_frame({"v": 1, "cmd": "nope", "args": {}})]
+
+    def check(self, data: bytes) -> None:
+        import json
+        import socket
+
+        from coopd.daemon.control import LENGTH
+
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(SOCKET_CASE_S)
+            s.connect(self.server.path)
+            reply, closed = send_and_drain(s, data, SOCKET_CASE_S)
+        if not closed:
+            raise Finding("control: connection still open after the request and its reply")
+        if reply:
+            if len(reply) < LENGTH.size:
+                raise Finding(f"control: reply of {len(reply)} bytes has no length prefix")
+            (n,) = LENGTH.unpack_from(reply)
+            try:
+                body = json.loads(reply[LENGTH.size:LENGTH.size + n])
+            except ValueError as e:
+                raise Finding(f"control: reply is not JSON: {reply[:80]!r}") from e
+            if not isinstance(body, dict) or not isinstance(body.get("ok"), bool):
+                raise Finding(f"control: reply without a boolean 'ok': {body!r}")
+            if not body["ok"] and (body.get("code") == "internal" or not body.get("error")):
+                raise Finding(f"control: error reply without a reason, or an internal error: {body!r}")
+        if self.server.counters["errors"]:
+            raise Finding("control: the server loop raised (counted in 'errors')")
+
+    def close(self) -> None:
+        from coopd.daemon import control
+
+        try:
+            result, _ = control.request(self.server.path, "ping", timeout_s=5)
+            if result.get("protocol") != control.PROTOCOL_VERSION:
+                raise Finding(f"control: ping after the fuzzing answered {result!r}")
+        finally:
+            self.server.stop()
+
+
+class CameraSocketTarget(Target):
+    """A SocketDepthSource against a hostile driver on a unix socket: one connection per input."""
+
+    name = "camera_socket"
+
+    def __init__(self, directory):
+        import os
+        import socket
+
+        from coopd.camera import SocketDepthSource, SocketSourceConfig
+
+        path = os.path.join(directory, "cam.sock")
+        self.listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.listener.bind(path)
+        self.listener.listen(4)
+        self.listener.settimeout(SOCKET_CASE_S)
+        config = SocketSourceConfig(path, max_payload_bytes=1 << 16, stall_timeout_s=1.0, frame_timeout_s=2.0,
+                                    backoff_s=(0.002, 0.01))
+        self.source = SocketDepthSource(config)
+        self.source.start()
+
+    def seeds(self) -> list[bytes]:
+        import msgpack
+
+        out = []
+        for seq in (0, 1):
+            frames = b""
+            for k in range(3):
+                h = {"v": 1, "seq": seq + k, "t_us": 1000 * (seq + k + 1), "w": 4, "h": 3, "fx": 5.0,
+                     "fy": 5.0, "cx": 1.5, "cy": 1.0, "scale": 0.001, "enc": "z16", "n": 24, "min_m": 0.2,
+                     "max_m": 5.0}
+                raw = msgpack.packb(h, use_bin_type=True)
+                frames += struct.pack("<I", len(raw)) + raw + bytes(range(24))
+            out.append(frames)
+        return out
+
+    def check(self, data: bytes) -> None:
+        counters = self.source.counters
+        ended = lambda: sum(v for k, v in counters.items() if k.startswith("disconnect_"))  # noqa: E731
+        before = ended()
+        try:
+            conn, _ = self.listener.accept()
+        except TimeoutError:
+            raise Finding("camera_socket: the source did not reconnect to the driver") from None
+        with conn:
+            send_and_drain(conn, data, SOCKET_CASE_S)
+        if not wait_for(lambda: ended() > before, SOCKET_CASE_S):
+            raise Finding("camera_socket: the source did not notice the driver closing the connection")
+        if counters["internal_errors"]:
+            raise Finding("camera_socket: a hostile driver caused an internal error in the source")
+        if self.source._thread is None or not self.source._thread.is_alive():
+            raise Finding("camera_socket: the camera thread died")
+
+    def close(self) -> None:
+        self.source.stop()
+        self.listener.close()
+
+
+class MavlinkUdpTarget(Target):
+    """A running VehicleLink on a loopback udpin port: it keeps running and counts every datagram."""
+
+    name = "mavlink_udp"
+    max_len = 600
+
+    def __init__(self):
+        import socket
+
+        from coopd.vehicle import LinkConfig, VehicleLink
+
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        self.link = VehicleLink(LinkConfig(connection=f"udpin:127.0.0.1:{port}"))
+        self.link.start()
+        self.address = ("127.0.0.1", port)
+        self.tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sent = 0
+        if not wait_for(lambda: self.link.transport.is_open, SOCKET_CASE_S):
+            raise RuntimeError(f"VehicleLink did not open udpin port {port}")
+
+    def seeds(self) -> list[bytes]:
+        return _mavlink_seeds()
+
+    post_mutate = MavlinkIngestTarget.post_mutate
+
+    def check(self, data: bytes) -> None:
+        if not data:
+            return  # an empty datagram carries nothing to count
+        self.tx.sendto(data, self.address)
+        self.sent += len(data)
+        if not wait_for(lambda: self.link.counters["rx_bytes"] >= self.sent, SOCKET_CASE_S):
+            raise Finding(f"mavlink_udp: link counted {self.link.counters['rx_bytes']} of {self.sent} bytes")
+        if self.link.counters["loop_errors"]:
+            raise Finding("mavlink_udp: a datagram raised inside the link loop (loop_errors)")
+        if self.link._thread is None or not self.link._thread.is_alive():
+            raise Finding("mavlink_udp: the link thread died")
+
+    def close(self) -> None:
+        self.tx.close()
+        self.link.stop()
+
+
+# ------------------------------------------------------------------------------------ registry
+def make_target(name: str, directory):
+    """The target called `name`; file and socket targets keep their files under `directory`."""
+    factories = {
+        "codec": CodecTarget, "planes": PlanesTarget, "wire": WireTarget, "mtp": MtpTarget,
+        "camera_header": CameraHeaderTarget, "mavlink": MavlinkIngestTarget,
+        "cmap": lambda: CmapTarget(directory), "config": lambda: ConfigTarget(directory),
+        "transport": TransportTarget, "control": lambda: ControlTarget(directory),
+        "camera_socket": lambda: CameraSocketTarget(directory), "mavlink_udp": MavlinkUdpTarget,
+    }
+    if name not in factories:
+        raise KeyError(f"unknown fuzz target {name!r}; known: {', '.join(factories)}")
+    return factories[name]()
+
+
+TARGETS = ("codec", "planes", "wire", "cmap", "mtp", "transport", "camera_header", "camera_socket",
+           "control", "config", "mavlink", "mavlink_udp")
