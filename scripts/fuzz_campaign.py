@@ -2,6 +2,7 @@
 """Long fuzz campaigns over coopd's outward-facing parsers (the harness of tests/fuzz, time-boxed).
 
 Usage: scripts/fuzz_campaign.py (--all | TARGET ...) [--seconds N] [--seed S] [--out DIR]
+                                [--engine mutation|atheris]
        scripts/fuzz_campaign.py TARGET --replay FILE      re-run one saved input, print its finding
 Findings (failing inputs + traceback) go to DIR/<target>/, survivors to DIR/<target>/corpus/ (the
 next campaign starts from them), and a summary of cases and findings to DIR/summary.json.
@@ -12,6 +13,8 @@ import hashlib
 import json
 import logging
 import random
+import re
+import subprocess
 import sys
 import tempfile
 import time
@@ -25,6 +28,8 @@ from tests.fuzz.campaign import run_mutations  # noqa: E402
 from tests.fuzz.harness import TARGETS, make_target  # noqa: E402
 
 MAX_CORPUS_FILES = 256
+ATHERIS_TARGETS = ("codec", "planes", "wire", "cmap", "mtp", "camera_header", "config", "mavlink")
+"""In-process targets (fuzz_atheris.py); the socket targets always run the mutation loop."""
 
 
 def load_corpus(directory: Path) -> list[bytes]:
@@ -53,8 +58,37 @@ def campaign(name: str, seconds: float, seed: int, out: Path, workdir: str) -> d
                          for d, msg in result.findings]}
 
 
+def atheris_campaign(name: str, seconds: float, out: Path) -> dict:
+    """Run one in-process target under atheris (coverage-guided libFuzzer) in a child; its summary entry."""
+    target_dir = out / name
+    target_dir.mkdir(parents=True, exist_ok=True)
+    before = set(target_dir.glob("crash-*")) | set(target_dir.glob("timeout-*"))
+    t0 = time.monotonic()
+    child = subprocess.run(
+        [sys.executable, str(Path(__file__).with_name("fuzz_atheris.py")), name, "--seconds",
+         str(max(1, int(seconds))), "--out", str(out)], capture_output=True, text=True, errors="replace",
+        timeout=seconds + 120)
+    elapsed = time.monotonic() - t0
+    (target_dir / "atheris.log").write_text(child.stderr[-200_000:])
+    runs = re.findall(r"^(?:Done (\d+) runs|#(\d+)\s)", child.stderr, re.M)
+    cases = max((int(a or b) for a, b in runs), default=0)
+    new = sorted((set(target_dir.glob("crash-*")) | set(target_dir.glob("timeout-*"))) - before)
+    findings = [{"input": str(p), "finding": _finding_line(child.stderr)} for p in new]
+    if child.returncode != 0 and not findings:
+        findings.append({"input": None, "finding": f"atheris exited with {child.returncode}; see "
+                                                   f"{target_dir / 'atheris.log'}"})
+    rate = round(cases / max(elapsed, 1e-9))
+    return {"cases": cases, "seconds": round(elapsed, 1), "cases_per_second": rate, "findings": findings}
+
+
+def _finding_line(log: str) -> str:
+    lines = [line for line in log.splitlines() if "Finding:" in line or "Error:" in line]
+    return lines[-1].strip() if lines else "see atheris.log"
+
+
 def replay(name: str, path: Path, workdir: str) -> int:
     with make_target(name, workdir) as target:
+        target.warm_up()
         try:
             target.check(path.read_bytes())
         except Finding:
@@ -71,6 +105,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=60.0, help="time budget per target (default 60)")
     ap.add_argument("--seed", type=int, default=None, help="mutation RNG seed (default: time-based)")
     ap.add_argument("--out", type=Path, default=Path("out/fuzz"))
+    ap.add_argument("--engine", choices=("mutation", "atheris"), default="mutation",
+                    help="atheris: coverage-guided, in-process targets only (socket targets use mutation)")
     ap.add_argument("--replay", type=Path, help="re-run one saved input against the (single) target")
     ap.add_argument("--verbose", action="store_true", help="show the parsers' own log messages")
     args = ap.parse_args(argv)
@@ -88,9 +124,13 @@ def main(argv=None) -> int:
         summary_path = args.out / "summary.json"
         summary = json.loads(summary_path.read_text()) if summary_path.exists() else {"targets": {}}
         for name in names:
-            entry = campaign(name, args.seconds, seed, args.out, workdir)
+            engine = args.engine if name in ATHERIS_TARGETS else "mutation"
+            if engine == "atheris":
+                entry = atheris_campaign(name, args.seconds, args.out)
+            else:
+                entry = campaign(name, args.seconds, seed, args.out, workdir)
             finished = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-            entry.update(seed=seed, engine="mutation", finished=finished)
+            entry.update(seed=seed, engine=engine, finished=finished)
             summary["targets"][name] = entry
             found = len(entry["findings"])
             print(f"{name}: {entry['cases']} cases in {entry['seconds']} s, {found} findings", flush=True)

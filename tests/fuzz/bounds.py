@@ -6,6 +6,9 @@ import threading
 import time
 import tracemalloc
 
+USE_ALARM = True
+"""False where another owner of SIGALRM runs the process (atheris: libFuzzer's -timeout catches hangs)."""
+
 
 class Finding(AssertionError):
     """An input broke a parser's contract (wrong exception type, hang, over-allocation, bad round trip)."""
@@ -20,7 +23,7 @@ def time_limit(seconds: float, what: str):
     """Finding if the block runs longer than `seconds` (SIGALRM in the main thread, else elapsed time).
 
     An outer alarm (pytest-timeout's) is suspended meanwhile and re-armed with what was left of it."""
-    use_alarm = threading.current_thread() is threading.main_thread()
+    use_alarm = USE_ALARM and threading.current_thread() is threading.main_thread()
     t0 = time.monotonic()
     if use_alarm:
         def on_alarm(signum, frame):
@@ -35,7 +38,7 @@ def time_limit(seconds: float, what: str):
     finally:
         if use_alarm:
             signal.setitimer(signal.ITIMER_REAL, 0)
-            signal.signal(signal.SIGALRM, previous)
+            signal.signal(signal.SIGALRM, signal.SIG_DFL if previous is None else previous)
             if outer_left:
                 signal.setitimer(signal.ITIMER_REAL, max(1e-3, outer_left - (time.monotonic() - t0)))
     elapsed = time.monotonic() - t0

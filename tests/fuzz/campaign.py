@@ -29,6 +29,7 @@ def run_mutations(target, rng: random.Random, *, cases: int | None = None, secon
                   extra_seeds=()) -> CampaignResult:
     """Feed the seeds, then mutants, until `cases` inputs or `seconds` passed; findings saved if asked."""
     result = CampaignResult(target.name)
+    target.warm_up()
     pool = target.seeds() + list(extra_seeds)
     corpus = list(pool)
     t0 = time.monotonic()
