@@ -20,6 +20,7 @@ server: every failure is a counted error reply or a closed connection.
 import errno
 import json
 import logging
+import math
 import os
 import selectors
 import socket
@@ -374,7 +375,7 @@ class ControlServer:
 
     def _dispatch(self, conn: _Conn) -> None:
         try:
-            request = json.loads(bytes(conn.buf).decode("utf-8"))
+            request = _strict_json(bytes(conn.buf).decode("utf-8"))
         except (UnicodeDecodeError, ValueError, RecursionError):
             self.counters["bad_requests"] += 1
             self._reply(conn, error_reply("bad_request", "request is not UTF-8 JSON"))
@@ -497,11 +498,28 @@ class ControlServer:
             conn.sock.close()
 
 
+def _refuse_constant(name: str):
+    raise ValueError(f"{name} is not JSON")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:20]} is out of range")
+    return value
+
+
+def _strict_json(text: str):
+    """JSON as RFC 8259 has it: NaN, Infinity and numbers that overflow a float are refused (ValueError),
+    so a handler never sees a value the reply encoder (allow_nan=False) cannot send back."""
+    return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float)
+
+
 def _check_request(request) -> tuple[str, str] | None:
     if not isinstance(request, dict):
         return "bad_request", "request must be a JSON object"
     v = request.get("v")
-    if v != PROTOCOL_VERSION:
+    if type(v) is not int or v != PROTOCOL_VERSION:  # 1.0 and true compare equal to 1
         return "version", f"protocol version {v!r} not supported (this coopd speaks {PROTOCOL_VERSION})"
     cmd = request.get("cmd")
     if not isinstance(cmd, str) or not cmd:

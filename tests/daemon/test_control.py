@@ -140,6 +140,12 @@ def test_handler_errors_become_error_replies(server):
     (struct.pack(">I", 100_000_000) + b"x" * 100, "too_large"),
     (b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", "too_large"),
     (struct.pack(">I", 10) + b"[" * 10, "bad_request"),
+    # found by tests/fuzz: non-JSON numbers reached handlers, whose replies then failed to encode
+    (frame({"v": 1, "cmd": "status", "args": {"a": float("nan")}}), "bad_request"),
+    (frame({"v": 1, "cmd": "status", "args": {"a": float("-inf")}}), "bad_request"),
+    (struct.pack(">I", 41) + b'{"v":1,"cmd":"status","args":{"a":1e400}}', "bad_request"),
+    (frame({"v": 1.0, "cmd": "status"}), "version"),
+    (frame({"v": True, "cmd": "status"}), "version"),
 ])
 def test_garbage_gets_an_error_reply(server, data, code):
     reply = raw(server.path, data)

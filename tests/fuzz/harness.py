@@ -620,7 +620,13 @@ class ControlTarget(Target):
 
         return [encode_frame({"v": 1, "cmd": "status", "args": {"a": [1, 2.5, None, "x"]}}),
                 encode_frame({"v": 1, "cmd": "blob", "args": {}}), encode_frame({"v": 1, "cmd": "ping"}),
-                encode_frame({"v": 1, "cmd": "nope", "args": {}})]
+                encode_frame({"v": 1, "cmd": "nope", "args": {}}),
+                self.raw_frame(b'{"v":1,"cmd":"status","args":{"a":[NaN,1e400,-Infinity,1e-400]}}')]
+
+    @staticmethod
+    def raw_frame(body: bytes) -> bytes:
+        """A request frame around body as is (which may be JSON Python reads but encode_frame won't write)."""
+        return struct.pack(">I", len(body)) + body
 
     def check(self, data: bytes) -> None:
         import json
