@@ -602,7 +602,7 @@ def request(
             (n,) = LENGTH.unpack(head)
             if n > max_reply_bytes:
                 raise ControlError(f"reply of {n} bytes exceeds the limit of {max_reply_bytes}")
-            reply = json.loads(_recv_exact(sock, n))
+            reply = _strict_json(_recv_exact(sock, n).decode("utf-8"))
             if not isinstance(reply, dict) or reply.get("v") != PROTOCOL_VERSION:
                 raise ControlError(
                     f"unexpected reply from {path} (not coopd control protocol v{PROTOCOL_VERSION})"
@@ -610,18 +610,23 @@ def request(
             if not reply.get("ok"):
                 raise RemoteError(str(reply.get("code", "")), str(reply.get("error", "unknown error")))
             blob = None
+            result = reply.get("result") or {}
+            if not isinstance(result, dict):
+                raise ControlError(f"garbled reply from {path}: result is not a JSON object")
             if "blob_bytes" in reply:
-                size = int(reply["blob_bytes"])
+                size = reply["blob_bytes"]
+                if type(size) is not int:
+                    raise ControlError(f"garbled reply from {path}: blob_bytes {size!r:.40} is no integer")
                 if not 0 <= size <= max_blob_bytes:
                     raise ControlError(f"daemon sends {size} bytes, more than the limit of {max_blob_bytes}")
                 blob = _recv_exact(sock, size)
-            return reply.get("result") or {}, blob
+            return result, blob
         except TimeoutError:
             raise ControlError(f"coopd did not answer {cmd!r} within {timeout_s} s") from None
         except (ConnectionResetError, BrokenPipeError):
             raise ControlError(f"coopd closed the connection during {cmd!r}") from None
-        except (ValueError, TypeError) as e:
-            raise ControlError(f"garbled reply from {path}: {e}") from None
+        except (ValueError, TypeError, RecursionError) as e:
+            raise ControlError(f"garbled reply from {path}: {type(e).__name__}: {e}") from None
     finally:
         sock.close()
 

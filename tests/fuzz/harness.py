@@ -64,7 +64,10 @@ class Target:
         self.measure_memory = False
         try:
             for seed in self.seeds():
-                self.check(seed)
+                try:
+                    self.check(seed)
+                except Finding:
+                    pass  # reported when the campaign feeds the seed, measured
         finally:
             self.measure_memory = measuring
 
@@ -666,6 +669,69 @@ class ControlTarget(Target):
             self.server.stop()
 
 
+class ControlClientTarget(Target):
+    """control.request (coopctl's side) against a hostile daemon that answers with the input."""
+
+    name = "control_client"
+
+    def __init__(self, directory):
+        import os
+        import socket
+        import threading
+
+        self.path = os.path.join(directory, "d.sock")
+        self.listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.listener.bind(self.path)
+        self.listener.listen(4)
+        self.listener.settimeout(0.2)
+        self.reply = b""
+        self.stopping = threading.Event()
+        self.thread = threading.Thread(target=self._serve, name="fuzz-hostile-daemon", daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        while not self.stopping.is_set():
+            try:
+                conn, _ = self.listener.accept()
+            except (TimeoutError, OSError):
+                continue
+            with conn:
+                try:
+                    conn.settimeout(2)
+                    head = conn.recv(4, 0x100)  # MSG_WAITALL: the request's length prefix
+                    if len(head) == 4:
+                        conn.recv(int.from_bytes(head, "big"), 0x100)
+                    conn.sendall(self.reply)
+                except OSError:
+                    pass
+
+    def seeds(self) -> list[bytes]:
+        from coopd.daemon.control import encode_frame
+
+        ok = {"v": 1, "ok": True, "result": {"state": "running"}}
+        return [encode_frame(ok), encode_frame({**ok, "blob_bytes": 3}) + b"abc",
+                encode_frame({"v": 1, "ok": False, "code": "failed", "error": "no map"}),
+                ControlTarget.raw_frame(b'{"v":1,"ok":true,"result":{"a":1},"blob_bytes":1e400}')]
+
+    def check(self, data: bytes) -> None:
+        from coopd.daemon import control
+
+        self.reply = data
+        with time_limit(CALL_LIMIT_S, "control.request"):
+            got = expect_only(control.ControlError, "control.request", lambda: control.request(
+                self.path, "status", timeout_s=1.0, max_blob_bytes=1024))
+        if got is not None:
+            result, blob = got
+            blob_ok = blob is None or isinstance(blob, bytes) and len(blob) <= 1024
+            if not isinstance(result, dict) or not blob_ok:
+                raise Finding(f"control.request returned {type(result).__name__} result / blob {blob!r:.40}")
+
+    def close(self) -> None:
+        self.stopping.set()
+        self.thread.join(2)
+        self.listener.close()
+
+
 class CameraSocketTarget(Target):
     """A SocketDepthSource against a hostile driver on a unix socket: one connection per input."""
 
@@ -776,6 +842,7 @@ def make_target(name: str, directory):
         "camera_header": CameraHeaderTarget, "mavlink": MavlinkIngestTarget,
         "cmap": lambda: CmapTarget(directory), "config": lambda: ConfigTarget(directory),
         "transport": TransportTarget, "control": lambda: ControlTarget(directory),
+        "control_client": lambda: ControlClientTarget(directory),
         "camera_socket": lambda: CameraSocketTarget(directory), "mavlink_udp": MavlinkUdpTarget,
     }
     if name not in factories:
@@ -784,4 +851,4 @@ def make_target(name: str, directory):
 
 
 TARGETS = ("codec", "planes", "wire", "cmap", "mtp", "transport", "camera_header", "camera_socket",
-           "control", "config", "mavlink", "mavlink_udp")
+           "control", "control_client", "config", "mavlink", "mavlink_udp")

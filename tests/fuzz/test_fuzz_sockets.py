@@ -1,5 +1,6 @@
-"""Fuzz the servers that face the network and local drivers: MTP server, control socket, camera source,
-MAVLink udpin link. Each runs on loopback; every hostile connection must end, none may break the server."""
+"""Fuzz the servers that face the network and local drivers: MTP server, control socket (and coopctl's
+client of it), camera source, MAVLink udpin link. Each runs on loopback; every hostile connection must
+end, and none may break the server."""
 
 import random
 
@@ -11,6 +12,7 @@ from tests.fuzz.ci_budget import CI_SETTINGS, assert_mutations_clean
 from tests.fuzz.harness import (
     TRANSPORT_BS,
     CameraSocketTarget,
+    ControlClientTarget,
     ControlTarget,
     MavlinkUdpTarget,
     TransportTarget,
@@ -80,6 +82,16 @@ def test_control_server_answers_arbitrary_json(control, args, cmd):
 
     body = json.dumps({"v": 1, "cmd": cmd, "args": args}).encode()
     control.check(struct.pack(">I", len(body)) + body)
+
+
+@pytest.fixture(scope="module")
+def control_client(short_dir):
+    with ControlClientTarget(short_dir) as t:
+        yield t
+
+
+def test_control_client_survives_a_hostile_daemon(control_client):
+    assert_mutations_clean(control_client, cases=SOCKET_CASES)
 
 
 def test_camera_source_survives_a_hostile_driver(camera):
