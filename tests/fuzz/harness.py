@@ -490,6 +490,10 @@ class MavlinkIngestTarget(Target):
             raise Finding("VehicleLink._ingest did not count the datagram")
         if self.link.target_system == 0:
             raise Finding("VehicleLink lost its FC lock on a datagram")
+        latest = self.link.poses.latest()
+        if latest is not None and not (np.isfinite(latest.position).all() and np.isfinite(latest.t_fc)
+                                       and abs(np.linalg.norm(latest.quaternion) - 1.0) < 1e-3):
+            raise Finding(f"VehicleLink buffered a pose that is not finite or not a unit rotation: {latest}")
 
 
 # -------------------------------------------------------------------------------- socket targets
