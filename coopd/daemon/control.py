@@ -20,6 +20,7 @@ server: every failure is a counted error reply or a closed connection.
 import errno
 import json
 import logging
+import math
 import os
 import selectors
 import socket
@@ -374,7 +375,7 @@ class ControlServer:
 
     def _dispatch(self, conn: _Conn) -> None:
         try:
-            request = json.loads(bytes(conn.buf).decode("utf-8"))
+            request = _strict_json(bytes(conn.buf).decode("utf-8"))
         except (UnicodeDecodeError, ValueError, RecursionError):
             self.counters["bad_requests"] += 1
             self._reply(conn, error_reply("bad_request", "request is not UTF-8 JSON"))
@@ -497,11 +498,28 @@ class ControlServer:
             conn.sock.close()
 
 
+def _refuse_constant(name: str):
+    raise ValueError(f"{name} is not JSON")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:20]} is out of range")
+    return value
+
+
+def _strict_json(text: str):
+    """JSON as RFC 8259 has it: NaN, Infinity and numbers that overflow a float are refused (ValueError),
+    so a handler never sees a value the reply encoder (allow_nan=False) cannot send back."""
+    return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float)
+
+
 def _check_request(request) -> tuple[str, str] | None:
     if not isinstance(request, dict):
         return "bad_request", "request must be a JSON object"
     v = request.get("v")
-    if v != PROTOCOL_VERSION:
+    if type(v) is not int or v != PROTOCOL_VERSION:  # 1.0 and true compare equal to 1
         return "version", f"protocol version {v!r} not supported (this coopd speaks {PROTOCOL_VERSION})"
     cmd = request.get("cmd")
     if not isinstance(cmd, str) or not cmd:
@@ -584,7 +602,7 @@ def request(
             (n,) = LENGTH.unpack(head)
             if n > max_reply_bytes:
                 raise ControlError(f"reply of {n} bytes exceeds the limit of {max_reply_bytes}")
-            reply = json.loads(_recv_exact(sock, n))
+            reply = _strict_json(_recv_exact(sock, n).decode("utf-8"))
             if not isinstance(reply, dict) or reply.get("v") != PROTOCOL_VERSION:
                 raise ControlError(
                     f"unexpected reply from {path} (not coopd control protocol v{PROTOCOL_VERSION})"
@@ -592,18 +610,23 @@ def request(
             if not reply.get("ok"):
                 raise RemoteError(str(reply.get("code", "")), str(reply.get("error", "unknown error")))
             blob = None
+            result = reply.get("result") or {}
+            if not isinstance(result, dict):
+                raise ControlError(f"garbled reply from {path}: result is not a JSON object")
             if "blob_bytes" in reply:
-                size = int(reply["blob_bytes"])
+                size = reply["blob_bytes"]
+                if type(size) is not int:
+                    raise ControlError(f"garbled reply from {path}: blob_bytes {size!r:.40} is no integer")
                 if not 0 <= size <= max_blob_bytes:
                     raise ControlError(f"daemon sends {size} bytes, more than the limit of {max_blob_bytes}")
                 blob = _recv_exact(sock, size)
-            return reply.get("result") or {}, blob
+            return result, blob
         except TimeoutError:
             raise ControlError(f"coopd did not answer {cmd!r} within {timeout_s} s") from None
         except (ConnectionResetError, BrokenPipeError):
             raise ControlError(f"coopd closed the connection during {cmd!r}") from None
-        except (ValueError, TypeError) as e:
-            raise ControlError(f"garbled reply from {path}: {e}") from None
+        except (ValueError, TypeError, RecursionError) as e:
+            raise ControlError(f"garbled reply from {path}: {type(e).__name__}: {e}") from None
     finally:
         sock.close()
 

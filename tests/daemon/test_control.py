@@ -140,6 +140,12 @@ def test_handler_errors_become_error_replies(server):
     (struct.pack(">I", 100_000_000) + b"x" * 100, "too_large"),
     (b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", "too_large"),
     (struct.pack(">I", 10) + b"[" * 10, "bad_request"),
+    # found by tests/fuzz: non-JSON numbers reached handlers, whose replies then failed to encode
+    (frame({"v": 1, "cmd": "status", "args": {"a": float("nan")}}), "bad_request"),
+    (frame({"v": 1, "cmd": "status", "args": {"a": float("-inf")}}), "bad_request"),
+    (struct.pack(">I", 41) + b'{"v":1,"cmd":"status","args":{"a":1e400}}', "bad_request"),
+    (frame({"v": 1.0, "cmd": "status"}), "version"),
+    (frame({"v": True, "cmd": "status"}), "version"),
 ])
 def test_garbage_gets_an_error_reply(server, data, code):
     reply = raw(server.path, data)
@@ -304,3 +310,34 @@ def test_stop_is_prompt(sock_dir):
     t0 = time.monotonic()
     srv.stop()
     assert time.monotonic() - t0 < 2
+
+
+@pytest.mark.parametrize("reply", [
+    b'{"v":1,"ok":true,"result":{},"blob_bytes":1e400}',
+    b'{"v":1,"ok":true,"result":{},"blob_bytes":null}',
+    b'{"v":1,"ok":true,"result":{},"blob_bytes":2.5}',
+    b'{"v":1,"ok":true,"result":[1,2]}',
+    b'{"v":1,"ok":true,"result":{"a":NaN}}',
+    b'{"v":1,"ok":true,"result":' + b"[" * 5000 + b"]" * 5000 + b"}",
+])
+def test_garbled_replies_are_control_errors(sock_dir, reply):
+    """Found by tests/fuzz: a hostile or broken daemon made request() raise OverflowError or return a list."""
+    path = os.path.join(sock_dir, "hostile.sock")
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(path)
+    listener.listen(1)
+
+    def answer():
+        conn, _ = listener.accept()
+        with conn:
+            conn.recv(65536)
+            conn.sendall(struct.pack(">I", len(reply)) + reply)
+
+    t = threading.Thread(target=answer, daemon=True)
+    t.start()
+    try:
+        with pytest.raises(control.ControlError, match="garbled reply"):
+            control.request(path, "status", timeout_s=3, max_blob_bytes=1024)
+    finally:
+        t.join(3)
+        listener.close()
