@@ -42,6 +42,8 @@ class Notifier:
         self._lib = lib
         self.backend = "systemd-python" if lib is not None else "socket"
         self._sock: socket.socket | None = None
+        self.dropped = 0
+        """Messages dropped because the notify queue was full (the socket backend never blocks)."""
         self._lock = threading.Lock()
         self._warned = False
         self.sent = 0
@@ -81,7 +83,13 @@ class Notifier:
             raise OSError(f"unsupported NOTIFY_SOCKET address {address!r}")
         if self._sock is None:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-        return self._sock.sendto(data, address) == len(data)
+        try:
+            # MSG_DONTWAIT: a full notify queue must never stall the caller (the watchdog pinger
+            # or the main loop); the message is dropped and counted instead.
+            return self._sock.sendto(data, socket.MSG_DONTWAIT, address) == len(data)
+        except BlockingIOError:
+            self.dropped += 1
+            return False
 
     def ready(self, status: str | None = None) -> bool:
         fields = ["READY=1"] + ([f"STATUS={_one_line(status)}"] if status else [])

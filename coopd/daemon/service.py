@@ -18,7 +18,6 @@ import json
 import logging
 import os
 import signal
-import socket
 import threading
 import time
 from collections import deque
@@ -133,30 +132,6 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
     )
 
 
-class DaemonNotifier(Notifier):
-    """sd_notify that never blocks: the NOTIFY_SOCKET datagram sent with MSG_DONTWAIT. libsystemd's
-    sd_notify blocks on a full notify queue while holding the GIL, which froze every thread of the
-    daemon (mapping included) whenever the queue filled; here a full queue drops the message (counted)."""
-
-    def __init__(self, environ=None):
-        super().__init__("socket", environ)
-        self.dropped = 0
-
-    def _send(self, data: bytes) -> bool:
-        address = self.address
-        if address.startswith("@"):
-            address = "\0" + address[1:]
-        elif not address.startswith("/"):
-            raise OSError(f"unsupported NOTIFY_SOCKET address {address!r}")
-        if self._sock is None:
-            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-        try:
-            return self._sock.sendto(data, socket.MSG_DONTWAIT, address) == len(data)
-        except BlockingIOError:
-            self.dropped += 1
-            return False
-
-
 # ------------------------------------------------------------------------------------ the daemon
 class Daemon:
     """One vehicle's coopd: the stages, their threads, persistence, control and health."""
@@ -167,7 +142,9 @@ class Daemon:
         self.pid = os.getpid()
         self.started = time.monotonic()
         self.state = "starting"
-        self.notifier = notifier if notifier is not None else DaemonNotifier()
+        # The socket backend, not libsystemd's sd_notify: that one blocks on a full notify queue while
+        # holding the GIL, which froze every thread of the daemon, mapping included.
+        self.notifier = notifier if notifier is not None else Notifier("socket")
         self.merge_fn = find_merge_all() if merge_fn is FROM_BUILD else merge_fn
         self.notifier.extend_timeout(120)
         self._warm_up()  # first: the kernels' memory then belongs to the budget's baseline

@@ -85,7 +85,7 @@ def build(daemon) -> dict:
             "withheld": daemon.watchdog.withheld,
             "healthy": daemon.healthy(),
             "notify_sent": daemon.notifier.sent,
-            "notify_dropped": getattr(daemon.notifier, "dropped", 0),
+            "notify_dropped": daemon.notifier.dropped,
         },
     }
 

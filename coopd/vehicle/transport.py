@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import logging
 import select
@@ -46,7 +47,7 @@ def parse_connection(text: str) -> Endpoint:
     return Endpoint("serial", device=device, baud=int(baud))
 
 
-class Transport:
+class Transport(abc.ABC):
     """Non-blocking byte pipe; `read` waits at most `timeout` s, `write` never blocks."""
 
     def __init__(self, endpoint: Endpoint):
@@ -55,25 +56,30 @@ class Transport:
         self.counters = {"tx_dropped": 0, "rx_errors": 0, "reopens": 0, "peer_changes": 0}
 
     @property
+    @abc.abstractmethod
     def is_open(self) -> bool:
-        raise NotImplementedError
+        """True while the underlying socket or port is open."""
 
+    @abc.abstractmethod
     def open(self) -> None:
-        raise NotImplementedError
+        """Open (or reopen) the socket or port; failures are raised as OSError."""
 
+    @abc.abstractmethod
     def read(self, timeout: float) -> bytes:
-        raise NotImplementedError
+        """Bytes received within timeout s (b"" when none)."""
 
     peer = None
 
-    def accept_source(self) -> None:
+    def accept_source(self) -> None:  # noqa: B027 - a hook most transports leave empty
         """The last read held valid traffic from the FC (only datagram servers care)."""
 
+    @abc.abstractmethod
     def write(self, data: bytes) -> None:
-        raise NotImplementedError
+        """Send without blocking; what cannot be sent now is dropped and counted."""
 
+    @abc.abstractmethod
     def close(self) -> None:
-        raise NotImplementedError
+        """Close; a later open() starts over."""
 
 
 class SocketTransport(Transport):

@@ -20,7 +20,8 @@ from coopd.daemon.checkpoint import CheckpointStore
 from coopd.daemon.config import from_dict
 from coopd.daemon.main import main
 from coopd.daemon.merger import NOT_AVAILABLE, Merger
-from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, DaemonNotifier, StartupError
+from coopd.daemon.notify import Notifier
+from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, StartupError
 from coopd.geometry import rigid, rotation_z
 from coopd.grid import OccupancyGrid, fuse_transformed
 from coopd.sharing.wire import MapMeta, decode_map, encode_map
@@ -124,7 +125,7 @@ def test_commands_without_a_vehicle(wd, merging):
 
 def test_sd_notify_ready_status_and_watchdog_only_while_mapping_lives(wd):
     listener = NotifyListener(wd)
-    notifier = DaemonNotifier({"NOTIFY_SOCKET": listener.path, "WATCHDOG_USEC": "400000"})
+    notifier = Notifier("socket", {"NOTIFY_SOCKET": listener.path, "WATCHDOG_USEC": "400000"})
     d = Daemon(_config(wd), notifier=notifier)
     hang = threading.Event()
     real_take = d.slot.take
@@ -167,7 +168,7 @@ def test_sd_notify_ready_status_and_watchdog_only_while_mapping_lives(wd):
 def test_a_notify_queue_nobody_reads_never_blocks_the_daemon(wd):
     deaf = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     deaf.bind(str(wd / "deaf.sock"))
-    notifier = DaemonNotifier({"NOTIFY_SOCKET": str(wd / "deaf.sock"), "WATCHDOG_USEC": "100000"})
+    notifier = Notifier("socket", {"NOTIFY_SOCKET": str(wd / "deaf.sock"), "WATCHDOG_USEC": "100000"})
     d = Daemon(_config(wd), notifier=notifier)
     d.start()
     runner = threading.Thread(target=d.run, daemon=True)

@@ -446,6 +446,9 @@ class _Recorder:
         class Recorder(Transport):
             is_open = True
 
+            def open(self):
+                pass
+
             def read(self, timeout):
                 return b""
 

@@ -58,6 +58,12 @@ class Recorder(Transport):
     def write(self, data):
         self.sent.append(data)
 
+    def open(self):
+        pass
+
+    def close(self):
+        pass
+
 
 def test_a_truncated_datagram_does_not_swallow_the_next():
     link = VehicleLink(LinkConfig(connection="udpin:127.0.0.1:1"), transport=Recorder())
