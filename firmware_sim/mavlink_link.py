@@ -91,12 +91,13 @@ def ned_to_enu(v) -> np.ndarray:
 
 
 class MavlinkLink:
-    """Bound to 127.0.0.1:<ephemeral>, sends to the client's UDP port, answers whoever talks to it."""
+    """Bound to <bind_host>:<ephemeral>, sends to the client's UDP port, answers whoever talks to it."""
 
-    def __init__(self, sim, vehicle, target: tuple[str, int], bind_port: int = 0):
-        self.sim, self.v, self.target = sim, vehicle, target
+    def __init__(self, sim, vehicle, target: tuple[str, int], bind_port: int = 0,
+                 bind_host: str = "127.0.0.1"):
+        self.sim, self.v, self.target, self.bind_host = sim, vehicle, target, bind_host
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", bind_port))
+        self.sock.bind((bind_host, bind_port))
         self.sock.setblocking(False)
         self.bound_port = self.sock.getsockname()[1]
         self.stats: Counter = Counter()

@@ -93,7 +93,7 @@ class Vehicle:
     @property
     def mavlink_endpoint(self) -> tuple[str, int] | None:
         """(host, port) the vehicle's MAVLink socket is bound to, if MAVLink is on."""
-        return None if self.link is None else ("127.0.0.1", self.link.bound_port)
+        return None if self.link is None else (self.link.bind_host, self.link.bound_port)
 
 
 class Simulation:
@@ -111,6 +111,8 @@ class Simulation:
         frame: str = "start",
         mavlink: bool = True,
         mavlink_base_port: int = 14540,
+        mavlink_hosts: list[str] | None = None,
+        mavlink_bind_host: str = "127.0.0.1",
         camera_dir: str | None = None,
         camera_tcp_base_port: int | None = None,
         route: str | None = None,
@@ -172,7 +174,10 @@ class Simulation:
             )
             v.sim = self
             self.vehicles.append(v)
-        self._setup_io(mavlink, mavlink_base_port, camera_dir, camera_tcp_base_port)
+        if mavlink_hosts is not None and len(mavlink_hosts) != n_vehicles:
+            raise ValueError("need one MAVLink host per vehicle")
+        self._setup_io(mavlink, mavlink_base_port, mavlink_hosts, mavlink_bind_host, camera_dir,
+                       camera_tcp_base_port)
         self._record_all()
         if route == "builtin":
             self.fly_builtin_routes()
@@ -181,13 +186,16 @@ class Simulation:
 
     # ------------------------------------------------------------------ wiring
 
-    def _setup_io(self, mavlink: bool, base_port: int, camera_dir: str | None, tcp_base: int | None) -> None:
-        """Open each vehicle's MAVLink endpoint and camera publisher."""
+    def _setup_io(self, mavlink: bool, base_port: int, hosts: list[str] | None, bind_host: str,
+                  camera_dir: str | None, tcp_base: int | None) -> None:
+        """Open each vehicle's MAVLink endpoint (bound on bind_host, sending to hosts[i]:base_port+i,
+        default loopback) and camera publisher."""
         if mavlink:
             from firmware_sim.mavlink_link import MavlinkLink
 
             for v in self.vehicles:
-                v.link = MavlinkLink(self, v, ("127.0.0.1", base_port + v.index))
+                host = "127.0.0.1" if hosts is None else hosts[v.index]
+                v.link = MavlinkLink(self, v, (host, base_port + v.index), bind_host=bind_host)
         if camera_dir is not None:
             os.makedirs(camera_dir, exist_ok=True)
         for v in self.vehicles:
@@ -203,7 +211,7 @@ class Simulation:
         for v in self.vehicles:
             e = {"vehicle": v.index, "system_id": v.system_id, "start_pose": list(v.true_start_pose)}
             if v.link is not None:
-                e["mavlink_bound"] = f"udp://127.0.0.1:{v.link.bound_port}"
+                e["mavlink_bound"] = f"udp://{v.link.bind_host}:{v.link.bound_port}"
                 e["mavlink_target"] = f"udp://{v.link.target[0]}:{v.link.target[1]}"
             if v.publisher is not None:
                 e["camera_unix"] = v.publisher.unix_path

@@ -7,30 +7,19 @@ exit, Ctrl-C included.
 
 import argparse
 import json
-import math
-import os
-import shutil
 import signal
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from coopd.daemon import control  # noqa: E402
-from coopd.geometry import invert, rigid, rotation_angle_deg  # noqa: E402
 from coopd.io import export_png_top, load_cmap  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
-from firmware_sim.simulation import Simulation  # noqa: E402
-from firmware_sim.worlds import GENERATORS, build_world  # noqa: E402
-
-MAVLINK_BASE = 14740
-SHARING_BASE = 17400
+from firmware_sim.swarm import Swarm, SwarmSettings  # noqa: E402
+from firmware_sim.worlds import GENERATORS  # noqa: E402
 
 
 def parse_args():
@@ -40,121 +29,17 @@ def parse_args():
     p.add_argument("--drones", type=int, default=3, help="number of drones (1..10)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--speed", type=float, default=2.0, help="simulated seconds per wall second")
+    p.add_argument("--network", choices=("auto", "netns", "loopback"), default="auto",
+                   help="one network namespace per drone (auto: when root with iproute2) or loopback")
+    p.add_argument("--port-base", type=int, default=SwarmSettings.mavlink_base,
+                   help="MAVLink UDP ports from here (one per drone); map servers on port-base + 2660")
     p.add_argument("--timeout", type=float, default=270.0, help="wall seconds before giving up")
     p.add_argument("--out", type=Path, default=ROOT / "out")
-    p.add_argument("--keep", action="store_true", help="keep the temporary directory (configs, logs)")
+    p.add_argument("--keep", action="store_true", help="keep the work directory (configs, logs)")
     a = p.parse_args()
     if not 1 <= a.drones <= 10:
         p.error("--drones must be within 1..10")
     return a
-
-
-def daemon_config(i: int, n: int, tmp: Path) -> str:
-    """The coopd.toml of drone i: its own MAVLink port, camera socket, map server and state."""
-    peers = ", ".join(f'"127.0.0.1:{SHARING_BASE + j}"' for j in range(n) if j != i)
-    return f"""
-[vehicle]
-id = {i + 1}
-mavlink = "udpin:127.0.0.1:{MAVLINK_BASE + i}"
-
-[camera]
-source = "socket:{tmp / f'camera{i}.sock'}"
-
-[sharing]
-listen_host = "127.0.0.1"
-port = {SHARING_BASE + i}
-peers = [{peers}]
-scan_period_s = 1.0
-
-[merging]
-period_s = 5.0
-
-[daemon]
-memory_mb = 768
-state_dir = "{tmp / f'state{i}'}"
-control_socket = "{tmp / f'control{i}.sock'}"
-checkpoint_period_s = 30.0
-"""
-
-
-class Demo:
-    """Owns the simulation and the daemons; stop() tears everything down."""
-
-    def __init__(self, args):
-        self.args = args
-        self.tmp = Path(tempfile.mkdtemp(prefix="coopd-demo-"))
-        self.daemons: list[subprocess.Popen] = []
-        self.sim: Simulation | None = None
-
-    def socket(self, i: int) -> Path:
-        return self.tmp / f"control{i}.sock"
-
-    def start(self):
-        """The simulation (vehicles idle on the ground, streaming MAVLink and camera frames), then
-        the daemons: the first alone, so it fills numba's kernel cache the others then load."""
-        a = self.args
-        world = build_world(a.world, a.seed)
-        print(f"demo: world {a.world} (seed {a.seed}), {a.drones} drones, "
-              f"firmware_sim at {a.speed:g}x real time")
-        self.world = world
-        self.sim = Simulation(world, a.drones, seed=a.seed, speed=a.speed, mavlink_base_port=MAVLINK_BASE,
-                              camera_dir=str(self.tmp))
-        self.sim.start()
-        self.start_daemon(0)
-        self.wait_ready([0], "compiling kernels (once; later starts load them from the cache)")
-        for i in range(1, a.drones):
-            self.start_daemon(i)
-        self.wait_ready(range(a.drones), "starting the other daemons")
-        print(f"demo: {a.drones} coopd daemons mapping (logs and configs in {self.tmp})")
-
-    def start_daemon(self, i: int) -> None:
-        cfg = self.tmp / f"coopd{i}.toml"
-        cfg.write_text(daemon_config(i, self.args.drones, self.tmp))
-        env = dict(os.environ, PYTHONPATH=str(ROOT))
-        with open(self.tmp / f"coopd{i}.log", "wb") as log:
-            cmd = [sys.executable, "-m", "coopd.daemon.main", "--config", str(cfg)]
-            self.daemons.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env))
-
-    def check_alive(self) -> None:
-        for i, p in enumerate(self.daemons):
-            if p.poll() is not None:
-                raise RuntimeError(f"coopd of drone {i + 1} exited with code {p.returncode}; "
-                                   f"see {self.tmp / f'coopd{i}.log'}")
-
-    def wait_ready(self, drones, what: str, limit_s: float = 240.0) -> None:
-        """Until every daemon in `drones` answers and maps (link up, frames arriving)."""
-        t0 = time.monotonic()
-        print(f"demo: {what} ...")
-        while time.monotonic() - t0 < limit_s:
-            self.check_alive()
-            statuses = [self.status(i) for i in drones]
-            if all(s and (s.get("mapping") or {}).get("state") == "mapping" for s in statuses):
-                print(f"demo: ready after {time.monotonic() - t0:.0f} s")
-                return
-            time.sleep(1.0)
-        raise RuntimeError(f"daemons not mapping after {limit_s:.0f} s; see the logs in {self.tmp}")
-
-    def status(self, i: int) -> dict | None:
-        try:
-            return control.request(self.socket(i), "status", timeout_s=5.0)[0]
-        except (control.ControlError, OSError):
-            return None
-
-    def stop(self):
-        for p in self.daemons:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 10
-        for p in self.daemons:
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-        if self.sim is not None:
-            self.sim.stop()
-        if not self.args.keep:
-            shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 def summary(s: dict | None) -> str:
@@ -166,30 +51,18 @@ def summary(s: dict | None) -> str:
             f"{m.get('known', 0)} known cells, {len(peers)} peers, {mg.get('done', 0)} merges")
 
 
-def progress_line(demo: Demo, t0: float, n: int) -> str:
-    flying = [not demo.sim.route_finished(i) for i in range(n)]
-    return (f"[{time.monotonic() - t0:5.0f} s, sim {demo.sim.time:5.0f} s] " + " | ".join(
-        f"drone {i + 1}: {'flying' if flying[i] else 'landed'}, {summary(demo.status(i))}" for i in range(n)))
-
-
-def merged_vehicles(s: dict | None) -> dict:
-    """Vehicle id -> offset entry of every map merged into this daemon's global map."""
-    if not s:
-        return {}
-    offsets = (s.get("merges") or {}).get("offsets") or {}
-    return {int(k): v for k, v in offsets.items() if v.get("accepted", True)}
-
-
-def world_from_map(sim: Simulation, i: int, origin_enu) -> np.ndarray:
-    """Truth: drone i's map frame in the world (its reporting frame, moved to the first sample)."""
-    odo = sim.vehicle(i).odometry
-    frame = rigid(odo.frame_rot, odo.origin)
-    return frame @ rigid(translation=np.asarray(origin_enu if origin_enu is not None else [0, 0, 0], float))
+def progress_line(swarm: Swarm, t0: float) -> str:
+    n = swarm.settings.drones
+    states = ["flying" if not swarm.sim.route_finished(i) else "landed" for i in range(n)]
+    return (f"[{time.monotonic() - t0:5.0f} s, sim {swarm.sim.time:5.0f} s] " + " | ".join(
+        f"drone {i + 1}: {states[i]}, {summary(swarm.status(i))}" for i in range(n)))
 
 
 def main() -> int:
     args = parse_args()
-    demo = Demo(args)
+    swarm = Swarm(SwarmSettings(world=args.world, drones=args.drones, seed=args.seed, speed=args.speed,
+                                network=args.network, mavlink_base=args.port_base,
+                                sharing_port=args.port_base + 2660))
     interrupted = False
 
     def on_signal(*_):
@@ -198,52 +71,48 @@ def main() -> int:
     signal.signal(signal.SIGTERM, on_signal)
     t0 = time.monotonic()
     try:
-        demo.start()
         n = args.drones
-        demo.sim.fly_builtin_routes()
+        print(f"demo: world {args.world} (seed {args.seed}), {n} drones, "
+              f"firmware_sim at {args.speed:g}x real time")
+        swarm.start()
+        print(f"demo: {n} coopd daemons mapping, network: {swarm.network_mode} "
+              f"({', '.join(swarm.address(i) for i in range(n))}); files in {swarm.workdir}")
+        swarm.fly()
         print("demo: drones take off and fly their exploration routes")
         last_print = 0.0
-        while any(not demo.sim.route_finished(i) for i in range(n)):
+        while not swarm.landed():
             if time.monotonic() - t0 > args.timeout:
                 print("demo: time is up before every drone landed; reporting what there is")
                 break
             time.sleep(1.0)
-            demo.check_alive()
+            swarm.check_alive()
             if time.monotonic() - last_print >= 5.0:
                 last_print = time.monotonic()
-                print(progress_line(demo, t0, n))
+                print(progress_line(swarm, t0))
         print("demo: every drone has landed; merging every map on every drone")
-        merge_deadline = time.monotonic() + 90.0
-        while time.monotonic() < merge_deadline and time.monotonic() - t0 < args.timeout + 60:
-            for i in range(n):
-                try:
-                    control.request(demo.socket(i), "merge-now", timeout_s=120.0)
-                except control.ControlError as e:
-                    print(f"demo: merge-now on drone {i + 1}: {e}")
-            print(progress_line(demo, t0, n))
-            if all(len(merged_vehicles(demo.status(i))) >= n - 1 for i in range(n)):
-                break
-            time.sleep(5.0)
-        return report(demo, [demo.status(i) for i in range(n)], time.monotonic() - t0)
+        if not swarm.merge_until_converged(limit_s=max(30.0, args.timeout + 60 - (time.monotonic() - t0)),
+                                           progress=lambda: print(progress_line(swarm, t0))):
+            print("demo: time is up before every daemon merged every map; reporting what there is")
+        return report(swarm, args, swarm.statuses(), time.monotonic() - t0)
     except KeyboardInterrupt:
         interrupted = True
         print("\ndemo: interrupted; stopping every process")
         return 130
     finally:
-        demo.stop()
+        swarm.stop(keep_files=args.keep)
         if interrupted:
-            print("demo: stopped")
+            print("demo: stopped; every process and namespace it made is gone")
 
 
-def report(demo: Demo, statuses, elapsed: float) -> int:
-    args = demo.args
+def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
+    """Print what happened per drone, dump every global map to out/, write out/demo_report.json."""
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     n = args.drones
     print(f"\n== coopd demo report: {args.world}, {n} drones, {elapsed:.0f} s wall, "
-          f"{demo.sim.time:.0f} s simulated")
-    origins = [((s or {}).get("link") or {}).get("map_origin_fc_enu") for s in statuses]
+          f"{swarm.sim.time:.0f} s simulated, network {swarm.network_mode}")
     ok = True
+    drones = []
     for i, s in enumerate(statuses):
         vid = i + 1
         if not s:
@@ -252,28 +121,25 @@ def report(demo: Demo, statuses, elapsed: float) -> int:
             continue
         m = s.get("map") or {}
         received = sum(1 for p in s.get("peers") or [] if p.get("map_version") is not None)
-        merged = merged_vehicles(s)
+        errors = swarm.offset_errors(i, statuses)
         print(f"drone {vid}: {m.get('known', 0)} cells mapped, {received} maps received, "
-              f"{(s.get('merges') or {}).get('done', 0)} merges, {len(merged)}/{n - 1} maps merged")
-        truth_i = world_from_map(demo.sim, i, origins[i])
+              f"{(s.get('merges') or {}).get('done', 0)} merges, {len(errors)}/{n - 1} maps merged")
         for j in range(n):
             if j == i:
                 continue
-            entry = merged.get(j + 1)
-            if entry is None:
+            e = errors.get(j + 1)
+            if e is None:
                 print(f"   drone {j + 1}: not merged")
                 ok = False
                 continue
-            est = np.array(entry["transform"], float).reshape(4, 4)
-            truth = invert(truth_i) @ world_from_map(demo.sim, j, origins[j])
-            dt = float(np.linalg.norm(est[:3, 3] - truth[:3, 3]))
-            dyaw = rotation_angle_deg(est[:3, :3].T @ truth[:3, :3])
-            yaw = math.degrees(math.atan2(est[1, 0], est[0, 0]))
-            print(f"   drone {j + 1}: offset x {est[0, 3]:6.2f} y {est[1, 3]:6.2f} z {est[2, 3]:5.2f} m, "
-                  f"yaw {yaw:7.1f} deg; error vs truth {dt:.2f} m, {dyaw:.1f} deg")
+            x, y, z = e["translation_m"]
+            print(f"   drone {j + 1}: offset x {x:6.2f} y {y:6.2f} z {z:5.2f} m, "
+                  f"yaw {e['yaw_deg']:7.1f} deg; "
+                  f"error vs truth {e['error_m']:.2f} m, {e['error_deg']:.1f} deg")
+        drones.append({"vehicle": vid, "offsets": errors})
         try:
-            _, blob = control.request(demo.socket(i), "dump-map", {"map": "global"}, timeout_s=60.0,
-                                      max_blob_bytes=512 * 1024 * 1024)
+            _, blob = swarm.daemons[i].request("dump-map", {"map": "global"}, timeout_s=60.0,
+                                               max_blob_bytes=512 * 1024 * 1024)
             cmap = out / f"global_{vid}.cmap"
             write_atomic(cmap, blob)
             grid, _ = load_cmap(cmap)
@@ -282,8 +148,9 @@ def report(demo: Demo, statuses, elapsed: float) -> int:
         except (control.ControlError, OSError, ValueError) as e:
             print(f"   could not dump the global map: {e}")
             ok = False
-    (out / "demo_report.json").write_text(json.dumps({"world": args.world, "drones": n, "elapsed_s": elapsed,
-                                                      "statuses": statuses}, indent=1, default=str))
+    (out / "demo_report.json").write_text(json.dumps(
+        {"world": args.world, "drones": n, "network": swarm.network_mode, "elapsed_s": elapsed,
+         "per_drone": drones, "statuses": statuses}, indent=1, default=str))
     return 0 if ok else 1
 
 
