@@ -1,0 +1,68 @@
+"""Hinted merging (thesis §1, §10.4: drones share the parameters of merges already computed).
+
+A hint is a candidate transform for one input map, from our own last accepted merge of that map
+("own": map frames are odometry frames, they do not move) or from a peer's published merge result
+("peer"). A hint is refined by ICP and must pass the same validation thresholds as a full merge
+(min_inliers, min_agreement, min_overlap, min_score, pair.judge); if none passes, the caller runs
+the full search. A hint costs one ICP + one validation instead of levelling, the yaw search and
+several refinements.
+
+No runner-up margin is checked for a hint. The margin guards the *choice* among the search's
+hypotheses in repeated structure; a hint is not chosen among alternatives here, it comes from a merge
+that passed that margin test where it was found (our own full merge, or the peer's, which publishes
+only validated merges), and it is re-validated on the maps as they are now. What that trusts is the
+provenance, so peer hints arrive only over swarm-key-authenticated transfers (docs/sharing.md).
+A hint is also refused when ICP moved it far (HINT_MAX_SHIFT_M, HINT_MAX_TURN_DEG): then it was not
+the transform it claimed to be, and the search decides.
+"""
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..geometry import check_rigid, rotation_angle_deg
+from .pair import MergeResult, PreparedMap, judge
+from .params import MergeParams
+
+MAX_HINTS = 4
+"""Hints tried per input map at most (each costs an ICP and a validation)."""
+HINT_MAX_SHIFT_M = 1.0
+HINT_MAX_TURN_DEG = 5.0
+"""ICP may move an accepted hint at most this far (map drift between merges is centimetres)."""
+
+
+@dataclass(frozen=True)
+class Hint:
+    """A candidate transform carrying an input map's frame into the reference frame.
+
+    via: index of another input map whose transform in this merge is prepended (transform then
+    carries this map's frame into that map's frame); resolved only once that map merged."""
+
+    transform: np.ndarray
+    source: str = "own"
+    via: int | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "transform", check_rigid(self.transform))
+
+
+def resolve(hint: Hint, merged: dict[int, np.ndarray]) -> np.ndarray | None:
+    """The hint's transform into the reference frame, or None while its `via` map is not merged."""
+    if hint.via is None:
+        return hint.transform
+    base = merged.get(hint.via)
+    return None if base is None else base @ hint.transform
+
+
+def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray, str]],
+              params: MergeParams) -> tuple[MergeResult | None, int]:
+    """(first hint that validates, as a result with method "hint:<source>", or None; hints refused)."""
+    refused = 0
+    for t, source in candidates[:MAX_HINTS]:
+        r = judge(a, b, t, params)
+        moved = (float(np.linalg.norm(r.transform[:3, 3] - t[:3, 3])),
+                 rotation_angle_deg(t[:3, :3].T @ r.transform[:3, :3]))
+        if r.accepted and moved[0] <= HINT_MAX_SHIFT_M and moved[1] <= HINT_MAX_TURN_DEG:
+            return replace(r, method=f"hint:{source}"), refused
+        refused += 1
+    return None, refused
