@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..geometry import check_rigid, rotation_angle_deg
+from ..geometry import check_rigid, invert, rotation_angle_deg
 from .pair import MergeResult, PreparedMap, judge
 from .params import MergeParams
 
@@ -66,3 +66,38 @@ def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray,
             return replace(r, method=f"hint:{source}"), refused
         refused += 1
     return None, refused
+
+
+def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_results) -> list[list[Hint]]:
+    """Hints per input map (vehicle ids `vids`, in merge order) from our own last accepted transforms
+    (`own`: vehicle id -> transform into our frame) and peers' results (objects with vehicle_id and
+    edges of a, b, transform carrying b's frame into a's, as wire.MergeResultMessage).
+
+    A peer vouches only for merges into its own frame (edges with a == its vehicle id). Its edge
+    a->b gives b a hint directly when a is us, and the inverse to a when b is us; otherwise the
+    hint leans on the other map's transform of this very merge (Hint.via), e.g. drone C with T_CA
+    and A's T_AB tries T_CA @ T_AB for B. Own hints come first, then direct, then chained ones."""
+    index = {v: i for i, v in enumerate(vids)}
+    out: list[list[Hint]] = [[] for _ in vids]
+    for v, i in index.items():
+        if v in own:
+            out[i].append(Hint(own[v], "own"))
+    chained: list[tuple[int, Hint]] = []
+    for msg in peer_results:
+        if msg.vehicle_id == own_vid:
+            continue
+        for e in msg.edges:
+            if e.a != msg.vehicle_id or e.a == e.b:
+                continue
+            t = np.asarray(e.transform, dtype=np.float64)
+            for target, other, rel in ((e.b, e.a, t), (e.a, e.b, None)):
+                if target not in index or other == target:
+                    continue
+                rel = rel if rel is not None else invert(t)
+                if other == own_vid:
+                    out[index[target]].append(Hint(rel, "peer"))
+                elif other in index:
+                    chained.append((index[target], Hint(rel, "peer", via=index[other])))
+    for i, h in chained:
+        out[i].append(h)
+    return [h[:MAX_HINTS] for h in out]

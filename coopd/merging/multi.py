@@ -22,6 +22,8 @@ class GlobalMergeResult:
     rounds: int
     hints_refused: list[int] = field(default_factory=list)
     """Per input map: hints tried that failed validation (the full search then ran)."""
+    full_registrations: int = 0
+    """Full searches run (a map retried in a later round counts again): the work hints save."""
 
     @property
     def transforms(self) -> list[np.ndarray | None]:
@@ -35,47 +37,93 @@ def _order(pending: list[int], hints: list[list[Hint]]) -> list[int]:
     return first + [i for i in pending if i not in first]
 
 
+class _World:
+    """The growing global map, prepared again only after something was fused into it."""
+
+    def __init__(self, reference: OccupancyGrid, params: MergeParams):
+        self.grid = reference.copy()
+        self.params = params
+        self._prepared = None
+
+    def prepared(self, tm: dict):
+        if self._prepared is None:
+            self._prepared = prepare(self.grid, self.params, tm, lazy=True)
+        return self._prepared
+
+    def fuse(self, grid: OccupancyGrid, transform: np.ndarray, tm: dict) -> None:
+        t0 = time.perf_counter()
+        fuse_transformed(self.grid, grid, transform, self.params.occupied_threshold)
+        tm["fuse"] = time.perf_counter() - t0
+        self._prepared = None
+
+
 def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
               params: MergeParams | None = None, hints: list[list[Hint]] | None = None) -> GlobalMergeResult:
     """Merge others into a copy of reference, retrying failures while the global map keeps growing.
-    hints[i]: candidate transforms for others[i] (hints.py), tried before the full search."""
+
+    hints[i]: candidate transforms for others[i] (hints.py). Hints go first and are retried whenever
+    the global map grew (a hint of a map that overlaps only a later one fails against the reference
+    alone); a map's full search runs only when none of its hints validates now."""
     params = params or coopd_params()
     hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
     if len(hints) != len(others):
         raise ValueError(f"{len(hints)} hint lists for {len(others)} maps")
-    world = reference.copy()
-    prepared_world = None
+    world = _World(reference, params)
     results: list[MergeResult | None] = [None] * len(others)
     prepared_others = [None] * len(others)
     refused = [0] * len(others)
+    full = 0
     merged: dict[int, np.ndarray] = {}
+
+    def prepared(i: int, tm: dict):
+        if prepared_others[i] is None:
+            prepared_others[i] = prepare(others[i], params, tm, lazy=True)
+        return prepared_others[i]
+
+    def finish(i: int, r: MergeResult, tm: dict, t0: float) -> None:
+        if r.accepted:
+            world.fuse(others[i], r.transform, tm)
+            merged[i] = r.transform
+        tm["total"] = time.perf_counter() - t0
+        results[i] = replace(r, timings=tm)
+
+    def run_hints(todo: list[int], last_refused: dict[int, int]) -> None:
+        """Try the hints of every map in todo, again as long as one of them merged."""
+        progress = True
+        while progress:
+            progress = False
+            for i in _order([i for i in todo if i not in merged], hints):
+                candidates = [(t, h.source) for h in hints[i] if (t := resolve(h, merged)) is not None]
+                if not candidates:
+                    continue
+                tm: dict = {}
+                t0 = time.perf_counter()
+                r, last_refused[i] = try_hints(world.prepared(tm), prepared(i, tm), candidates, params)
+                if r is not None:
+                    finish(i, r, tm, t0)
+                    progress = True
+
     rounds = 0
     pending = list(range(len(others)))
     while pending and rounds < params.max_rounds:
         rounds += 1
-        merged_now = []
-        for i in _order(pending, hints):
-            tm: dict = {}
+        before = len(merged)
+        searched: set[int] = set()
+        last_refused: dict[int, int] = {}
+        while True:
+            run_hints(pending, last_refused)
+            todo = [i for i in _order(pending, hints) if i not in merged and i not in searched]
+            if not todo:
+                break
+            i = todo[0]
+            searched.add(i)
+            refused[i] += last_refused.pop(i, 0)
+            tm = {}
             t0 = time.perf_counter()
-            if prepared_world is None:
-                prepared_world = prepare(world, params, tm, lazy=True)
-            if prepared_others[i] is None:
-                prepared_others[i] = prepare(others[i], params, tm, lazy=True)
-            candidates = [(t, h.source) for h in hints[i] if (t := resolve(h, merged)) is not None]
-            r, n = try_hints(prepared_world, prepared_others[i], candidates, params)
-            refused[i] += n
-            if r is None:
-                r = merge_prepared(prepared_world, prepared_others[i], params, tm)
-            if r.accepted:
-                t1 = time.perf_counter()
-                fuse_transformed(world, others[i], r.transform, params.occupied_threshold)
-                tm["fuse"] = time.perf_counter() - t1
-                prepared_world = None
-                merged_now.append(i)
-                merged[i] = r.transform
-            tm["total"] = time.perf_counter() - t0
-            results[i] = replace(r, timings=tm)
-        pending = [i for i in pending if i not in merged_now]
-        if not merged_now:
+            r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm)
+            full += 1
+            finish(i, r, tm, t0)
+        pending = [i for i in pending if i not in merged]
+        if len(merged) == before:
             break
-    return GlobalMergeResult(world, results, rounds, refused)
+    return GlobalMergeResult(world.grid, results, rounds, refused, full)

@@ -267,7 +267,8 @@ class SharingService:
 
         if summary.vehicle_id != via:
             raise Rejected("relayed_result", f"merge result of vehicle {summary.vehicle_id} sent by {via}")
-        if summary.version <= self.results.version(summary.vehicle_id):
+        vid = summary.vehicle_id
+        if vid == self.vehicle_id or summary.version <= self.results.version(vid):
             self.peers.received(via, summary.vehicle_id, summary.version, summary.size, arrival.seconds,
                                 arrival.address, kind="result")
             return mtp.ACK_STALE
