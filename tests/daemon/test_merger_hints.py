@@ -94,3 +94,33 @@ def test_a_peers_wrong_edge_is_refused_and_the_map_still_merges_correctly(chain)
     assert c["hint_rejected"] >= 1 and c["hinted_peer"] == 0 and c["full_registrations"] >= 2
     assert m.offsets[1]["accepted"] and m.offsets[1]["method"] == "full"
     assert _close(np.reshape(m.offsets[1]["transform"], (4, 4)), _truth(chain, 0, 1))
+
+
+def _daemon_config(tmp_path, **merging):
+    from coopd.daemon.config import from_dict
+
+    return from_dict({
+        "vehicle": {"mavlink": "udpin:127.0.0.1:21160"},
+        "camera": {"source": f"socket:{tmp_path}/no-camera.sock"},
+        "sharing": {"enabled": True, "listen_host": "127.0.0.1", "port": 21161},
+        "merging": merging,
+        "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock")},
+    })
+
+
+def test_the_daemon_hands_its_merge_results_to_sharing_and_peers_results_to_the_merger(tmp_path):
+    from coopd.daemon.service import Daemon
+
+    d = Daemon(_daemon_config(tmp_path), merge_fn=merge_all)
+    assert d.merger.distributed is True
+    msg = _result_message(1, (1, 3, rigid(rotation_z(0.2), [1.0, 0.0, 0.0])))
+    d.merger.publish_results(msg)
+    pending = d.sharing.pending_for(7)
+    assert [(origin, version, kind) for origin, version, _, kind in pending] == [(1, 1, "result")]
+    assert wire.decode_merge_result(pending[0][2]).edges[0].b == 3
+    assert d.sharing.results.offer(_result_message(5, (5, 1, np.eye(4))))
+    assert [r.vehicle_id for r in d.merger.peer_results()] == [5]
+    status = d.merger.status()
+    assert {"full_registrations", "hinted", "hinted_own", "hinted_peer", "hint_rejected", "cpu_s",
+            "done", "failed", "deferred", "offsets", "last"} <= set(status)
+    assert Daemon(_daemon_config(tmp_path, distributed=False), merge_fn=merge_all).merger.distributed is False
