@@ -391,8 +391,11 @@ def _check_edge(e: MergeEdge) -> np.ndarray:
     """The edge's transform as float64 4x4; WireError unless it is a sane rigid transform."""
     from coopd.geometry import check_rigid
 
+    t = np.asarray(e.transform, dtype=np.float64)
+    if t.shape == (4, 4) and np.all(np.isfinite(t)) and np.abs(t[:3, :3]).max() > 1.0 + 1e-6:
+        raise WireError(f"edge {e.a}->{e.b}: transform is not rigid (rotation entries beyond 1)")
     try:
-        t = check_rigid(e.transform, tol=1e-6)
+        t = check_rigid(t, tol=1e-6)
     except ValueError as err:
         raise WireError(f"edge {e.a}->{e.b}: {err}") from None
     if np.abs(t[:3, 3]).max() > MAX_TRANSLATION_M:
