@@ -55,17 +55,22 @@ def resolve(hint: Hint, merged: dict[int, np.ndarray]) -> np.ndarray | None:
 
 
 def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray, str]],
-              params: MergeParams) -> tuple[MergeResult | None, int]:
-    """(first hint that validates, as a result with method "hint:<source>", or None; hints refused)."""
-    refused = 0
-    for t, source in candidates[:MAX_HINTS]:
+              params: MergeParams) -> tuple[MergeResult | None, int, list[int]]:
+    """(first hint that validates, as a result with method "hint:<source>", or None; hints refused;
+    positions of the refused ones that a larger global map cannot save: they disagree with it (score)
+    or ICP moved them far, as opposed to overlapping it too little (few inliers or agreeing cells),
+    so retrying them after a fuse would only cost CPU)."""
+    refused, final = 0, []
+    for k, (t, source) in enumerate(candidates[:MAX_HINTS]):
         r = judge(a, b, t, params)
         moved = (float(np.linalg.norm(r.transform[:3, 3] - t[:3, 3])),
                  rotation_angle_deg(t[:3, :3].T @ r.transform[:3, :3]))
         if r.accepted and moved[0] <= HINT_MAX_SHIFT_M and moved[1] <= HINT_MAX_TURN_DEG:
-            return replace(r, method=f"hint:{source}"), refused
+            return replace(r, method=f"hint:{source}"), refused, final
         refused += 1
-    return None, refused
+        if r.accepted or r.reason.startswith("score"):  # moved far, or conflicts: disagrees
+            final.append(k)
+    return None, refused, final
 
 
 def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_results) -> list[list[Hint]]:

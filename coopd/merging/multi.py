@@ -21,7 +21,7 @@ class GlobalMergeResult:
     results: list[MergeResult]
     rounds: int
     hints_refused: list[int] = field(default_factory=list)
-    """Per input map: hints tried that failed validation (the full search then ran)."""
+    """Per input map: hint validations that failed (work spent on hints that did not serve)."""
     full_registrations: int = 0
     """Full searches run (a map retried in a later round counts again): the work hints save."""
 
@@ -87,18 +87,30 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         tm["total"] = time.perf_counter() - t0
         results[i] = replace(r, timings=tm)
 
-    def run_hints(todo: list[int], last_refused: dict[int, int]) -> None:
+    dead: set[tuple[int, int]] = set()
+    """(map, hint position) refused for disagreeing with the global map: not tried again."""
+    tried_at: dict[int, int] = {}
+    """Map -> maps merged when its hints were last tried: retried only once the global map grew."""
+
+    def run_hints(todo: list[int]) -> None:
         """Try the hints of every map in todo, again as long as one of them merged."""
         progress = True
         while progress:
             progress = False
             for i in _order([i for i in todo if i not in merged], hints):
-                candidates = [(t, h.source) for h in hints[i] if (t := resolve(h, merged)) is not None]
-                if not candidates:
+                if tried_at.get(i) == len(merged):
+                    continue
+                tried_at[i] = len(merged)
+                live = [k for k, h in enumerate(hints[i])
+                        if (i, k) not in dead and resolve(h, merged) is not None]
+                if not live:
                     continue
                 tm: dict = {}
                 t0 = time.perf_counter()
-                r, last_refused[i] = try_hints(world.prepared(tm), prepared(i, tm), candidates, params)
+                candidates = [(resolve(hints[i][k], merged), hints[i][k].source) for k in live]
+                r, n, final = try_hints(world.prepared(tm), prepared(i, tm), candidates, params)
+                refused[i] += n
+                dead.update((i, live[j]) for j in final)
                 if r is not None:
                     finish(i, r, tm, t0)
                     progress = True
@@ -109,15 +121,13 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         rounds += 1
         before = len(merged)
         searched: set[int] = set()
-        last_refused: dict[int, int] = {}
         while True:
-            run_hints(pending, last_refused)
+            run_hints(pending)
             todo = [i for i in _order(pending, hints) if i not in merged and i not in searched]
             if not todo:
                 break
             i = todo[0]
             searched.add(i)
-            refused[i] += last_refused.pop(i, 0)
             tm = {}
             t0 = time.perf_counter()
             r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm)

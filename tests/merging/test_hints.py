@@ -107,3 +107,20 @@ def test_hints_for_composes_own_direct_and_chained_hints():
     assert len(hints_for(9, [2], {}, many)[0]) == MAX_HINTS
     with pytest.raises(ValueError, match="rigid"):
         Hint(np.diag([2.0, 1.0, 1.0, 1.0]))
+
+
+def test_refused_hints_that_disagree_are_final_those_that_miss_the_map_are_retried(near_pair):
+    """try_hints marks a hint that conflicts with the map as final, one that lands off the map is not
+    (a larger global map may still hold it): merge_all then retries only the latter after a fuse."""
+    from coopd.merging.hints import try_hints
+    from coopd.merging.pair import prepare
+    from coopd.merging.params import coopd_params
+
+    params = coopd_params()
+    pa, pb = prepare(near_pair.a, params, lazy=True), prepare(near_pair.b, params, lazy=True)
+    t = near_pair.a_from_b
+    flipped, off_map = rigid(rotation_z(np.pi)) @ t, rigid(None, [40.0, 0.0, 0.0]) @ t
+    r, refused, final = try_hints(pa, pb, [(flipped, "peer"), (off_map, "peer")], params)
+    assert r is None and refused == 2 and final == [0]
+    r, refused, final = try_hints(pa, pb, [(off_map, "peer"), (t, "own"), (flipped, "peer")], params)
+    assert r.method == "hint:own" and refused == 1 and final == [] and _close(r.transform, t)
