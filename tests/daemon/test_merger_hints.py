@@ -124,3 +124,10 @@ def test_the_daemon_hands_its_merge_results_to_sharing_and_peers_results_to_the_
     assert {"full_registrations", "hinted", "hinted_own", "hinted_peer", "hint_rejected", "cpu_s",
             "done", "failed", "deferred", "offsets", "last"} <= set(status)
     assert Daemon(_daemon_config(tmp_path, distributed=False), merge_fn=merge_all).merger.distributed is False
+
+
+def test_command_line_switches_distributed_merging_off():
+    from coopd.daemon.main import build_config, parse_args
+
+    assert build_config(parse_args(["--no-config"])).merging.distributed is True
+    assert build_config(parse_args(["--no-config", "--no-distributed"])).merging.distributed is False
