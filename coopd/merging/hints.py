@@ -13,7 +13,8 @@ that passed that margin test where it was found (our own full merge, or the peer
 only validated merges), and it is re-validated on the maps as they are now. What that trusts is the
 provenance, so peer hints arrive only over swarm-key-authenticated transfers (docs/sharing.md).
 A hint is also refused when ICP moved it far (HINT_MAX_SHIFT_M, HINT_MAX_TURN_DEG): then it was not
-the transform it claimed to be, and the search decides.
+the transform it claimed to be, and the search decides. And when two hints of one map propose
+distinct transforms that both validate, none is taken (try_hints): the full search decides.
 """
 
 from dataclasses import dataclass, replace
@@ -21,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..geometry import check_rigid, invert, rotation_angle_deg
-from .pair import MergeResult, PreparedMap, judge
+from .pair import MergeResult, PreparedMap, distinct, judge
 from .params import MergeParams
 
 MAX_HINTS = 4
@@ -54,21 +55,37 @@ def resolve(hint: Hint, merged: dict[int, np.ndarray]) -> np.ndarray | None:
     return None if base is None else base @ hint.transform
 
 
+def _validates(a: PreparedMap, b: PreparedMap, t: np.ndarray, params: MergeParams) -> MergeResult | None:
+    """judge(t) if it is accepted and ICP did not move t far (else the hint was not what it claimed)."""
+    r = judge(a, b, t, params)
+    moved = (float(np.linalg.norm(r.transform[:3, 3] - t[:3, 3])),
+             rotation_angle_deg(t[:3, :3].T @ r.transform[:3, :3]))
+    ok = r.accepted and moved[0] <= HINT_MAX_SHIFT_M and moved[1] <= HINT_MAX_TURN_DEG
+    return r if ok else replace(r, accepted=False, reason=r.reason if not r.accepted else "moved far by ICP")
+
+
 def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray, str]],
               params: MergeParams) -> tuple[MergeResult | None, int, list[int]]:
     """(first hint that validates, as a result with method "hint:<source>", or None; hints refused;
     positions of the refused ones that a larger global map cannot save: they disagree with it (score)
     or ICP moved them far, as opposed to overlapping it too little (few inliers or agreeing cells),
-    so retrying them after a fuse would only cost CPU)."""
+    so retrying them after a fuse would only cost CPU).
+
+    The hints' own ambiguity check: when a later hint proposes a distinct transform (pair.distinct)
+    that validates too, the maps fit two ways and the hints cannot tell which: all are refused and the
+    full search, with its runner-up margin, decides. Hints normally agree, so this costs nothing."""
+    cands = candidates[:MAX_HINTS]
     refused, final = 0, []
-    for k, (t, source) in enumerate(candidates[:MAX_HINTS]):
-        r = judge(a, b, t, params)
-        moved = (float(np.linalg.norm(r.transform[:3, 3] - t[:3, 3])),
-                 rotation_angle_deg(t[:3, :3].T @ r.transform[:3, :3]))
-        if r.accepted and moved[0] <= HINT_MAX_SHIFT_M and moved[1] <= HINT_MAX_TURN_DEG:
+    for k, (t, source) in enumerate(cands):
+        r = _validates(a, b, t, params)
+        if r.accepted:
+            for u in [u for u, _ in cands[k + 1:] if distinct(u, r.transform)]:
+                refused += 1  # a rival hint: validated for the check only, never taken
+                if _validates(a, b, u, params).accepted:
+                    return None, refused + 1, final
             return replace(r, method=f"hint:{source}"), refused, final
         refused += 1
-        if r.accepted or r.reason.startswith("score"):  # moved far, or conflicts: disagrees
+        if r.reason.startswith(("score", "moved far")):  # it disagrees with the map
             final.append(k)
     return None, refused, final
 

@@ -153,7 +153,8 @@ def judge(a: PreparedMap, b: PreparedMap, transform: np.ndarray, params: MergePa
                        reason, overlap)
 
 
-def _distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
+def distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
+    """Two transforms that are different hypotheses (> 5 deg or > 1 m apart), not one refined twice."""
     return (rotation_angle_deg(t1[:3, :3].T @ t2[:3, :3]) > angle_deg
             or float(np.linalg.norm(t1[:3, 3] - t2[:3, 3])) > shift_m)
 
@@ -189,7 +190,7 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
                            timings=tm)
     scored.sort(key=lambda x: -x[0])
     _, best_ag, best = scored[0]
-    runner = next((s for s in scored[1:] if _distinct(s[2].transform, best.transform)), None)
+    runner = next((s for s in scored[1:] if distinct(s[2].transform, best.transform)), None)
     runner_score = runner[1].score if runner else 0.0
     overlap = _share(best_ag, a, b)
     reason = _rejection(best_ag, best.inliers, overlap, params) or "accepted"

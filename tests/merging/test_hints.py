@@ -123,4 +123,28 @@ def test_refused_hints_that_disagree_are_final_those_that_miss_the_map_are_retri
     r, refused, final = try_hints(pa, pb, [(flipped, "peer"), (off_map, "peer")], params)
     assert r is None and refused == 2 and final == [0]
     r, refused, final = try_hints(pa, pb, [(off_map, "peer"), (t, "own"), (flipped, "peer")], params)
-    assert r.method == "hint:own" and refused == 1 and final == [] and _close(r.transform, t)
+    # the flipped hint after it is a distinct rival: validated (and refused) for the ambiguity check
+    assert r.method == "hint:own" and refused == 2 and final == [] and _close(r.transform, t)
+
+
+def test_two_distinct_hints_that_both_validate_leave_the_choice_to_the_full_search():
+    """A rectangular room fits itself turned by 180 degrees: the true hint and its twin both validate,
+    so neither is taken, and the full search refuses the merge as ambiguous (its runner-up margin)."""
+    from coopd.grid import OccupancyGrid
+
+    cells = np.full((60, 40, 20), 80, dtype=np.int8)
+    cells[2:-2, 2:-2, 2:-2] = 10
+    a = OccupancyGrid(cells.copy(), 0.1, (0, 0, 0))
+    b = OccupancyGrid(cells.copy(), 0.1, (-30, -20, 0))
+    truth = rigid(None, [3.0, 2.0, 0.0])
+    centre = np.array([2.95, 1.95, 0.0])
+    twin = rigid(None, centre) @ rigid(rotation_z(np.pi)) @ rigid(None, -centre) @ truth
+    alone = merge_all(a, [b], hints=[[Hint(twin, "peer")]])
+    assert alone.results[0].method == "hint:peer"  # one hint alone cannot see the symmetry
+    near = rigid(rotation_z(np.radians(1.0)), [0.2, 0.0, 0.0]) @ truth  # the same hypothesis, drifted
+    same = merge_all(a, [b], hints=[[Hint(truth), Hint(near, "peer")]])
+    assert same.results[0].method == "hint:own" and same.hints_refused == [0]
+    both = merge_all(a, [b], hints=[[Hint(truth), Hint(twin, "peer")]])
+    r = both.results[0]
+    assert both.hints_refused == [2] and both.full_registrations == 1
+    assert not r.accepted and r.reason.startswith("ambiguous")
