@@ -14,8 +14,6 @@ from coopd.merging.benchset import make_chain, make_world
 from coopd.sharing import wire
 from coopd.sharing.wire import MapMeta, encode_map
 
-pytestmark = pytest.mark.slow
-
 
 @pytest.fixture(scope="module")
 def chain():
@@ -50,6 +48,7 @@ def _merger(chain, peer_results=(), distributed=True, published=None):
                   publish_results=None if published is None else published.append)
 
 
+@pytest.mark.slow
 def test_own_warm_start_replaces_the_full_search_and_validated_edges_are_published(chain):
     published = []
     m = _merger(chain, published=published)
@@ -72,6 +71,7 @@ def test_own_warm_start_replaces_the_full_search_and_validated_edges_are_publish
     assert all(_close(np.reshape(o["transform"], (4, 4)), _truth(chain, 0, v)) for v, o in m.offsets.items())
 
 
+@pytest.mark.slow
 def test_a_peers_edges_replace_every_full_registration_unless_distributed_is_off(chain):
     peer = [_result_message(1, (1, 0, _truth(chain, 1, 0)), (1, 2, _truth(chain, 1, 2)))]
     m = _merger(chain, peer)
@@ -86,6 +86,7 @@ def test_a_peers_edges_replace_every_full_registration_unless_distributed_is_off
     assert off.status()["distributed"] is False and published == []  # neither used nor published
 
 
+@pytest.mark.slow
 def test_a_peers_wrong_edge_is_refused_and_the_map_still_merges_correctly(chain):
     wrong = rigid(rotation_z(np.radians(35)), [1.5, -1.0, 0.0]) @ _truth(chain, 1, 0)
     m = _merger(chain, [_result_message(1, (1, 0, wrong))])
