@@ -159,6 +159,16 @@ def format_status(s: dict) -> str:
             f"{mg.get('done', '-')} done, {mg.get('failed', '-')} failed, {mg.get('deferred', '-')} deferred",
         )
     )
+    if "full_registrations" in mg:
+        rows.append(
+            (
+                "merge work",
+                f"{mg['full_registrations']} full registrations, {mg.get('hinted', '-')} hinted "
+                f"({mg.get('hinted_peer', '-')} by peers' results), {mg.get('hint_rejected', '-')} hints "
+                f"refused, {mg.get('cpu_s', '-')} s CPU"
+                + ("" if mg.get("distributed", True) else ", not distributed"),
+            )
+        )
     mem = s.get("memory") or {}
     if mem:
         entries = ", ".join(f"{k} {_mib(v)}" for k, v in (mem.get("entries") or {}).items())

@@ -248,6 +248,9 @@ class MergingConfig:
     enabled: bool = _key("merge at all", True)
     period_s: float = _key("seconds between merges", 10.0, _between(0.5, 86400.0, " s"))
     on_receive: bool = _key("also merge as soon as a changed map arrives", True)
+    distributed: bool = _key(
+        "publish our merge results and use peers' as hints (false: own warm start only)", True
+    )
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,8 @@ def parse_args(argv) -> argparse.Namespace:
     p.add_argument("--peer", dest="peers", action="append", default=None, metavar="HOST[:PORT]",
                    help="peer to scan, repeatable (replaces sharing.peers)")
     p.add_argument("--no-sharing", action="store_true", help="sharing.enabled = false")
+    p.add_argument("--no-distributed", action="store_true",
+                   help="merging.distributed = false (neither publish nor use peers' merge results)")
     p.add_argument("--check-config", action="store_true", help="validate the configuration and exit")
     return p.parse_args(argv)
 
@@ -58,6 +60,8 @@ def build_config(args: argparse.Namespace):
         table["sharing"]["peers"] = args.peers
     if args.no_sharing:
         table["sharing"]["enabled"] = False
+    if args.no_distributed:
+        table["merging"]["distributed"] = False
     return from_dict(table)
 
 

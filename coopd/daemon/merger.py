@@ -9,6 +9,12 @@ The registration and fusion are coopd.merging.merge_all(reference, others, param
 GlobalMergeResult(global_map, results per input map: accepted, transform, score, reason). In a
 build without it the global map is the local map fused with nothing and every merge request
 answers "merging: not available in this build".
+
+Map frames are odometry frames: the transform between two of them does not change between merges.
+So every accepted transform is kept per vehicle and handed to the next merge as a hint (own warm
+start, coopd.merging.hints): ICP + validation instead of the full search. With `distributed`, peers'
+published merge results are hints too, and our own accepted transforms are published
+(publish_results) for them (thesis §1, §10.4). merge_fn gets hints=... only when there are any.
 """
 
 import logging
@@ -21,7 +27,17 @@ import numpy as np
 
 from coopd.daemon.budget import BudgetExceeded, MemoryBudget
 from coopd.grid import OccupancyGrid
-from coopd.sharing.wire import DEFAULT_LIMITS, DecodeLimits, MapMeta, decode_map, peek
+from coopd.sharing.wire import (
+    DEFAULT_LIMITS,
+    EDGE_FULL,
+    MAX_EDGES,
+    DecodeLimits,
+    MapMeta,
+    MergeEdge,
+    MergeResultMessage,
+    decode_map,
+    peek,
+)
 
 log = logging.getLogger("coopd.daemon")
 
@@ -66,6 +82,9 @@ class Merger:
         params=None,
         limits: DecodeLimits = DEFAULT_LIMITS,
         min_gap_s: float = 0.0,
+        distributed: bool = True,
+        peer_results: Callable[[], list] | None = None,
+        publish_results: Callable[[MergeResultMessage], None] | None = None,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -76,7 +95,17 @@ class Merger:
         self.merge_fn = merge_fn
         self.params = params
         self.limits = limits
-        self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0}
+        self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0,
+                         "full_registrations": 0, "hinted_own": 0, "hinted_peer": 0, "hint_rejected": 0}
+        self.cpu_s = 0.0
+        """CPU time of the merging thread inside merges (time.thread_time): the work the bench sums."""
+        self.distributed = distributed
+        """Use peers' merge results as hints and publish ours; off: own warm start only."""
+        self.peer_results = peer_results
+        self.publish_results = publish_results
+        self._accepted: dict[int, np.ndarray] = {}
+        """Vehicle id -> last accepted transform of its map frame into ours (the own hints)."""
+        self._result_version = 0
         self.last: dict | None = None
         self.offsets: dict[int, dict] = {}
         self._global: tuple[OccupancyGrid, MapMeta] | None = None
@@ -154,6 +183,7 @@ class Merger:
     def merge_once(self, reason: str = "request") -> dict:
         """One merge of the local map with every received map; returns and records the outcome."""
         t0 = time.monotonic()
+        cpu0 = time.thread_time()
         self.busy_since = t0
         try:
             outcome, detail = self._merge()
@@ -162,6 +192,7 @@ class Merger:
             outcome, detail = "failed", f"{type(e).__name__}: {e}"
         finally:
             self.busy_since = None
+            self.cpu_s += time.thread_time() - cpu0
         seconds = time.monotonic() - t0
         key = "nothing_to_merge" if outcome == "nothing" else outcome
         self.counters[key] += 1
@@ -191,15 +222,22 @@ class Merger:
             with self.budget.scratch("merge-scratch", need):
                 vids = [m.vehicle_id for m, _ in infos]
                 others = [decode_map(m.data, self.limits)[0] for m, _ in infos]
-                result = self.merge_fn(local_grid, others, self.params)
+                hints = self._hints(vids)
+                if any(hints):
+                    result = self.merge_fn(local_grid, others, self.params, hints=hints)
+                else:
+                    result = self.merge_fn(local_grid, others, self.params)
                 del others
                 merged = result.global_map
                 offsets = {}
                 for vid, r in zip(vids, result.results, strict=True):
                     offsets[vid] = {"accepted": bool(r.accepted), "score": round(float(r.score), 4),
-                                    "reason": str(r.reason), **offset_summary(r.transform)}
+                                    "reason": str(r.reason), "method": getattr(r, "method", "full"),
+                                    **offset_summary(r.transform)}
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
+        self._count(result)
+        self._publish(self._remember([m for m, _ in infos], result.results, local_version))
         if not self.budget.reserve("global", merged.size):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
         self.offsets = offsets
@@ -210,6 +248,49 @@ class Merger:
             f"{len(accepted)} of {len(infos)} received maps merged {accepted} (local v{local_version}, "
             f"{result.rounds} rounds); global {'x'.join(map(str, merged.shape))} cells"
         )
+
+    def _hints(self, vids: list[int]) -> list[list]:
+        """Hints per input map: own last accepted transforms, and peers' results when distributed."""
+        from coopd.merging.hints import hints_for
+
+        peer = []
+        if self.distributed and self.peer_results is not None:
+            peer = [r for r in self.peer_results() if r.vehicle_id != self.vehicle_id]
+        return hints_for(self.vehicle_id, vids, self._accepted, peer)
+
+    def _count(self, result) -> None:
+        """Merge work by kind: full searches, hints accepted (own / peer) and hints refused."""
+        methods = [getattr(r, "method", "full") for r in result.results]
+        c = self.counters
+        c["full_registrations"] += getattr(result, "full_registrations", methods.count("full"))
+        c["hinted_own"] += methods.count("hint:own")
+        c["hinted_peer"] += methods.count("hint:peer")
+        c["hint_rejected"] += sum(getattr(result, "hints_refused", []))
+
+    def _remember(self, stored: list, results: list, local_version: int) -> list[MergeEdge]:
+        """Keep every accepted transform as the next merge's own hint; return them as edges."""
+        edges = []
+        for m, r in zip(stored, results, strict=True):
+            if not r.accepted:
+                continue
+            t = self._accepted[m.vehicle_id] = np.asarray(r.transform, dtype=np.float64)
+            full = getattr(r, "method", "full") == "full"
+            edges.append(MergeEdge(self.vehicle_id, m.vehicle_id, t, float(np.clip(r.score, 0, 1)),
+                                   float(np.clip(getattr(r, "overlap", 0.0), 0, 1)), int(local_version),
+                                   int(m.version), EDGE_FULL if full else 0))
+        return edges
+
+    def _publish(self, edges: list[MergeEdge]) -> None:
+        """Publish our validated merges for peers (only when distributed and there are any)."""
+        if not (self.distributed and self.publish_results is not None and edges):
+            return
+        # increasing across restarts while the clock does: a peer keeps only newer versions
+        self._result_version = max(self._result_version + 1, time.time_ns() // 1000)
+        try:
+            self.publish_results(MergeResultMessage(self.vehicle_id, self._result_version, time.time(),
+                                                    tuple(edges[:MAX_EDGES])))
+        except ValueError as e:
+            log.error("publishing merge results refused: %s", e)
 
     def _set_global(self, value) -> None:
         with self._cv:
@@ -235,6 +316,9 @@ class Merger:
             "enabled": self.enabled,
             "state": state,
             **self.counters,
+            "hinted": self.counters["hinted_own"] + self.counters["hinted_peer"],
+            "cpu_s": round(self.cpu_s, 3),
+            "distributed": self.distributed,
             "last": self.last,
             "offsets": {str(k): v for k, v in self.offsets.items()},
             "global_version": None if self._global is None else self._global[1].version,

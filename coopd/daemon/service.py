@@ -43,7 +43,14 @@ from coopd.sharing.peers import MessageSummary
 from coopd.sharing.service import SharingConfig as ServiceSharingConfig
 from coopd.sharing.service import SharingService, wire_verifier
 from coopd.sharing.transport import TransportSettings
-from coopd.sharing.wire import DecodeLimits, MapMeta, decode_map, encode_map
+from coopd.sharing.wire import (
+    DecodeLimits,
+    MapMeta,
+    MergeResultMessage,
+    decode_map,
+    encode_map,
+    encode_merge_result,
+)
 from coopd.vehicle import LinkConfig, VehicleLink
 
 from . import status as status_report
@@ -179,6 +186,9 @@ class Daemon:
             merge_fn=self.merge_fn,
             limits=DecodeLimits(config.sharing.max_map_cells, config.sharing.max_map_bytes),
             min_gap_s=min(config.merging.period_s, MERGE_MIN_GAP_S),
+            distributed=config.merging.distributed,
+            peer_results=self._peer_results,
+            publish_results=self._publish_results,
         )
         self.control = ControlServer(
             config.daemon.control_socket,
@@ -488,6 +498,14 @@ class Daemon:
     def _on_map_received(self, vehicle_id: int, version: int) -> None:
         if self.config.merging.on_receive:
             self.merger.request(f"map of vehicle {vehicle_id} v{version}")
+
+    def _peer_results(self) -> list:
+        return [] if self.sharing is None else self.sharing.results.all()
+
+    def _publish_results(self, message: MergeResultMessage) -> None:
+        """Our validated merge results, offered to peers (wire type 2) if sharing is on."""
+        if self.sharing is not None:
+            self.sharing.publish_result(encode_merge_result(message), message.version)
 
     def _received_maps(self) -> list:
         return [] if self.sharing is None else self.sharing.received.all()

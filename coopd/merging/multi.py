@@ -3,11 +3,12 @@ into the growing global map, and maps that failed are retried once the global ma
 inheritance). Every merged map's transform into the global (= reference) frame is reported."""
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..grid import OccupancyGrid, fuse_transformed
+from .hints import Hint, resolve, try_hints
 from .pair import MergeResult, merge_prepared, prepare
 from .params import MergeParams, coopd_params
 
@@ -19,6 +20,10 @@ class GlobalMergeResult:
     global_map: OccupancyGrid
     results: list[MergeResult]
     rounds: int
+    hints_refused: list[int] = field(default_factory=list)
+    """Per input map: hint validations that failed (work spent on hints that did not serve)."""
+    full_registrations: int = 0
+    """Full searches run (a map retried in a later round counts again): the work hints save."""
 
     @property
     def transforms(self) -> list[np.ndarray | None]:
@@ -26,37 +31,109 @@ class GlobalMergeResult:
         return [r.transform if r.accepted else None for r in self.results]
 
 
+def _order(pending: list[int], hints: list[list[Hint]]) -> list[int]:
+    """Maps whose hints lean on another pending map (via) go after it, so the hint can resolve."""
+    first = [i for i in pending if not any(h.via in pending for h in hints[i])]
+    return first + [i for i in pending if i not in first]
+
+
+class _World:
+    """The growing global map, prepared again only after something was fused into it."""
+
+    def __init__(self, reference: OccupancyGrid, params: MergeParams):
+        self.grid = reference.copy()
+        self.params = params
+        self._prepared = None
+
+    def prepared(self, tm: dict):
+        if self._prepared is None:
+            self._prepared = prepare(self.grid, self.params, tm, lazy=True)
+        return self._prepared
+
+    def fuse(self, grid: OccupancyGrid, transform: np.ndarray, tm: dict) -> None:
+        t0 = time.perf_counter()
+        fuse_transformed(self.grid, grid, transform, self.params.occupied_threshold)
+        tm["fuse"] = time.perf_counter() - t0
+        self._prepared = None
+
+
 def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
-              params: MergeParams | None = None) -> GlobalMergeResult:
-    """Merge others into a copy of reference, retrying failures while the global map keeps growing."""
+              params: MergeParams | None = None, hints: list[list[Hint]] | None = None) -> GlobalMergeResult:
+    """Merge others into a copy of reference, retrying failures while the global map keeps growing.
+
+    hints[i]: candidate transforms for others[i] (hints.py). Hints go first and are retried whenever
+    the global map grew (a hint of a map that overlaps only a later one fails against the reference
+    alone); a map's full search runs only when none of its hints validates now."""
     params = params or coopd_params()
-    world = reference.copy()
-    prepared_world = None
+    hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
+    if len(hints) != len(others):
+        raise ValueError(f"{len(hints)} hint lists for {len(others)} maps")
+    world = _World(reference, params)
     results: list[MergeResult | None] = [None] * len(others)
     prepared_others = [None] * len(others)
+    refused = [0] * len(others)
+    full = 0
+    merged: dict[int, np.ndarray] = {}
+
+    def prepared(i: int, tm: dict):
+        if prepared_others[i] is None:
+            prepared_others[i] = prepare(others[i], params, tm, lazy=True)
+        return prepared_others[i]
+
+    def finish(i: int, r: MergeResult, tm: dict, t0: float) -> None:
+        if r.accepted:
+            world.fuse(others[i], r.transform, tm)
+            merged[i] = r.transform
+        tm["total"] = time.perf_counter() - t0
+        results[i] = replace(r, timings=tm)
+
+    dead: set[tuple[int, int]] = set()
+    """(map, hint position) refused for disagreeing with the global map: not tried again."""
+    tried_at: dict[int, int] = {}
+    """Map -> maps merged when its hints were last tried: retried only once the global map grew."""
+
+    def run_hints(todo: list[int]) -> None:
+        """Try the hints of every map in todo, again as long as one of them merged."""
+        progress = True
+        while progress:
+            progress = False
+            for i in _order([i for i in todo if i not in merged], hints):
+                if tried_at.get(i) == len(merged):
+                    continue
+                tried_at[i] = len(merged)
+                live = [k for k, h in enumerate(hints[i])
+                        if (i, k) not in dead and resolve(h, merged) is not None]
+                if not live:
+                    continue
+                tm: dict = {}
+                t0 = time.perf_counter()
+                candidates = [(resolve(hints[i][k], merged), hints[i][k].source) for k in live]
+                r, n, final = try_hints(world.prepared(tm), prepared(i, tm), candidates, params)
+                refused[i] += n
+                dead.update((i, live[j]) for j in final)
+                if r is not None:
+                    finish(i, r, tm, t0)
+                    progress = True
+
     rounds = 0
     pending = list(range(len(others)))
     while pending and rounds < params.max_rounds:
         rounds += 1
-        merged_now = []
-        for i in pending:
-            tm: dict = {}
+        before = len(merged)
+        searched: set[int] = set()
+        while True:
+            run_hints(pending)
+            todo = [i for i in _order(pending, hints) if i not in merged and i not in searched]
+            if not todo:
+                break
+            i = todo[0]
+            searched.add(i)
+            tm = {}
             t0 = time.perf_counter()
-            if prepared_world is None:
-                prepared_world = prepare(world, params, tm)
-            if prepared_others[i] is None:
-                prepared_others[i] = prepare(others[i], params, tm)
-            r = merge_prepared(prepared_world, prepared_others[i], params, tm)
-            if r.accepted:
-                t1 = time.perf_counter()
-                fuse_transformed(world, others[i], r.transform, params.occupied_threshold)
-                tm["fuse"] = time.perf_counter() - t1
-                prepared_world = None
-                merged_now.append(i)
-            tm["total"] = time.perf_counter() - t0
-            results[i] = MergeResult(r.accepted, r.transform, r.inliers, r.score, r.agreement, r.conflicts,
-                                     r.runner_up_score, r.reason, r.overlap, tm)
-        pending = [i for i in pending if i not in merged_now]
-        if not merged_now:
+            r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm)
+            full += 1
+            finish(i, r, tm, t0)
+        pending = [i for i in pending if i not in merged]
+        if len(merged) == before:
             break
-    return GlobalMergeResult(world, results, rounds)
+    return GlobalMergeResult(world.grid, results, rounds, refused, full)

@@ -34,6 +34,9 @@ class MergeResult:
     overlap: float = 0.0
     """Agreeing vertical-structure samples over all samples of both maps (0..1)."""
     timings: dict = field(default_factory=dict)
+    method: str = "full"
+    """How the transform was found: "full" (global search) or "hint:<source>" (a hint refined and
+    validated, see hints.py); lets the daemon count the merge work it saved."""
 
     def to_json(self) -> dict:
         """JSON-ready summary; euler_deg is (roll, pitch, yaw) by eq. 33."""
@@ -43,7 +46,8 @@ class MergeResult:
                 "inliers": self.inliers, "score": round(self.score, 4), "agreement": self.agreement,
                 "conflicts": self.conflicts, "overlap": round(self.overlap, 4),
                 "runner_up_score": round(self.runner_up_score, 4),
-                "reason": self.reason, "seconds": round(sum(self.timings.values()), 4),
+                "reason": self.reason, "method": self.method,
+                "seconds": round(sum(self.timings.values()), 4),
                 "timings": {k: round(v, 4) for k, v in self.timings.items()}}
 
 
@@ -67,25 +71,32 @@ class PreparedMap:
     levelled: OccupancyGrid | None = None
 
 
-def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = None) -> PreparedMap:
-    """Summary for validation, a k-d tree for refinement and features when the variant uses them."""
+def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = None,
+            lazy: bool = False) -> PreparedMap:
+    """Summary for validation, a k-d tree for refinement and features when the variant uses them.
+    lazy: only what judging a given transform needs; merge_prepared adds the rest when it searches."""
     tm = timings if timings is not None else {}
     t0 = time.perf_counter()
     summary = summarise(grid, params.occupied_threshold, params.validation_max_points)
     tree = cKDTree(summary.occupied_m) if params.refine and len(summary.occupied_m) else None
     tm["summarise"] = tm.get("summarise", 0.0) + time.perf_counter() - t0
-    level, levelled = None, grid
-    if params.search and params.level:
+    p = PreparedMap(grid, summary, tree, None, None, grid)
+    if not lazy:
+        complete(p, params, tm)
+    return p
+
+
+def complete(p: PreparedMap, params: MergeParams, tm: dict) -> None:
+    """Add what the search and the feature stage need (levelling, features), once."""
+    if params.search and params.level and p.level is None:
         t0 = time.perf_counter()
-        level = level_transform(grid, params.occupied_threshold, params.level_max_tilt_deg)
-        levelled = grid if np.allclose(level, np.eye(4)) else transform_grid(grid, level)
+        p.level = level_transform(p.grid, params.occupied_threshold, params.level_max_tilt_deg)
+        p.levelled = p.grid if np.allclose(p.level, np.eye(4)) else transform_grid(p.grid, p.level)
         tm["level"] = tm.get("level", 0.0) + time.perf_counter() - t0
-    feats = None
-    if params.hypotheses > 0:
-        feats = extract(grid, params)
-        for k, v in feats.timings.items():
+    if params.hypotheses > 0 and p.features is None:
+        p.features = extract(p.grid, params)
+        for k, v in p.features.timings.items():
             tm[k] = tm.get(k, 0.0) + v
-    return PreparedMap(grid, summary, tree, feats, level, levelled)
 
 
 def _feature_candidates(a: PreparedMap, b: PreparedMap, params: MergeParams, tm: dict) -> list[Candidate]:
@@ -142,7 +153,8 @@ def judge(a: PreparedMap, b: PreparedMap, transform: np.ndarray, params: MergePa
                        reason, overlap)
 
 
-def _distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
+def distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
+    """Two transforms that are different hypotheses (> 5 deg or > 1 m apart), not one refined twice."""
     return (rotation_angle_deg(t1[:3, :3].T @ t2[:3, :3]) > angle_deg
             or float(np.linalg.norm(t1[:3, 3] - t2[:3, 3])) > shift_m)
 
@@ -151,6 +163,8 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
                    tm: dict | None = None) -> MergeResult:
     """merge_pair on prepared maps."""
     tm = {} if tm is None else tm
+    complete(a, params, tm)
+    complete(b, params, tm)
     cands: list[Candidate] = []
     if params.search:
         t0 = time.perf_counter()
@@ -176,7 +190,7 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
                            timings=tm)
     scored.sort(key=lambda x: -x[0])
     _, best_ag, best = scored[0]
-    runner = next((s for s in scored[1:] if _distinct(s[2].transform, best.transform)), None)
+    runner = next((s for s in scored[1:] if distinct(s[2].transform, best.transform)), None)
     runner_score = runner[1].score if runner else 0.0
     overlap = _share(best_ag, a, b)
     reason = _rejection(best_ag, best.inliers, overlap, params) or "accepted"

@@ -1,5 +1,6 @@
 """Who we share with: the peer table (keyed by vehicle id), per-peer stats and version tracking,
-and the received-map store (newest version per vehicle, kept as serialized bytes)."""
+the received-map store (newest version per vehicle, kept as serialized bytes) and the received
+merge-result store (newest result message per sender, decoded)."""
 
 import threading
 import time
@@ -16,6 +17,8 @@ class MessageSummary:
     size: int
     """Bytes of the whole message (where it ends inside the zero-padded data blocks)."""
     cells: int
+    kind: str = "map"
+    """"map" (types 0/1) or "result" (type 2, merge results): versions are tracked per kind."""
 
 
 @dataclass
@@ -42,6 +45,10 @@ class PeerStats:
     """The peer daemon's instance id from its hello; a new one resets `has`."""
     has: dict = field(default_factory=dict)
     """origin vehicle id -> newest map version this peer is known to hold (sent or received)."""
+    has_results: dict = field(default_factory=dict)
+    """origin vehicle id -> newest merge-result version this peer is known to hold."""
+    results_sent: int = 0
+    results_received: int = 0
 
     def snapshot(self, now: float) -> dict:
         return {
@@ -53,6 +60,8 @@ class PeerStats:
             "last_transfer_s": round(self.last_transfer_s, 6),
             "last_throughput_mbit_s": round(self.last_throughput_bps * 8 / 1e6, 3),
             "failures": dict(self.failures), "has_versions": dict(self.has),
+            "results_sent": self.results_sent, "results_received": self.results_received,
+            "has_result_versions": dict(self.has_results),
         }
 
 
@@ -91,6 +100,7 @@ class PeerTable:
             if restarted:
                 peer.instance = instance
                 peer.has.clear()
+                peer.has_results.clear()
             return restarted
 
     def disconnected(self, vehicle_id: int) -> None:
@@ -103,52 +113,63 @@ class PeerTable:
             peer = self._peers.get(vehicle_id)
             return peer is not None and peer.connected
 
-    def sent(self, vehicle_id: int, origin: int, version: int, nbytes: int, seconds: float) -> None:
-        """A map of `origin` at `version` was delivered to the peer and acknowledged."""
+    def sent(self, vehicle_id: int, origin: int, version: int, nbytes: int, seconds: float,
+             kind: str = "map") -> None:
+        """A message (map or merge result) of `origin` at `version` was delivered and acknowledged."""
         with self._lock:
             peer = self._get(vehicle_id)
-            peer.maps_sent += 1
+            if kind == "result":
+                peer.results_sent += 1
+            else:
+                peer.maps_sent += 1
             peer.bytes_sent += nbytes
             peer.last_transfer_s = seconds
             peer.last_throughput_bps = nbytes / seconds if seconds > 0 else 0.0
             peer.last_seen = self._clock()
-            self._note_has(peer, origin, version)
+            self._note_has(peer, origin, version, kind)
 
     def received(self, vehicle_id: int, origin: int, version: int, nbytes: int, seconds: float,
-                 address: str = "") -> None:
-        """A map of `origin` arrived from the peer: it holds at least that version."""
+                 address: str = "", kind: str = "map") -> None:
+        """A message of `origin` arrived from the peer: it holds at least that version."""
         with self._lock:
             peer = self._get(vehicle_id)
-            peer.maps_received += 1
+            if kind == "result":
+                peer.results_received += 1
+            else:
+                peer.maps_received += 1
             peer.bytes_received += nbytes
             peer.last_transfer_s = seconds
             peer.last_throughput_bps = nbytes / seconds if seconds > 0 else 0.0
             peer.last_seen = self._clock()
             if address and not peer.address:  # the server address found by discovery wins
                 peer.address = address
-            self._note_has(peer, origin, version)
+            self._note_has(peer, origin, version, kind)
 
-    def peer_has(self, vehicle_id: int, origin: int, version: int, redundant: bool = False) -> None:
+    def peer_has(self, vehicle_id: int, origin: int, version: int, redundant: bool = False,
+                 kind: str = "map") -> None:
         """Record that the peer holds `origin` at `version` (e.g. it answered 'stale')."""
         with self._lock:
             peer = self._get(vehicle_id)
             peer.redundant_sent += int(redundant)
-            self._note_has(peer, origin, version)
+            self._note_has(peer, origin, version, kind)
 
     def offer_declined(self, vehicle_id: int) -> None:
         with self._lock:
             self._get(vehicle_id).offers_declined += 1
 
     @staticmethod
-    def _note_has(peer: PeerStats, origin: int, version: int) -> None:
-        if version > peer.has.get(origin, -1):
-            peer.has[origin] = version
+    def _note_has(peer: PeerStats, origin: int, version: int, kind: str = "map") -> None:
+        has = peer.has_results if kind == "result" else peer.has
+        if version > has.get(origin, -1):
+            has[origin] = version
 
-    def has_version(self, vehicle_id: int, origin: int) -> int:
-        """Newest version of `origin` the peer is known to hold; -1 if none."""
+    def has_version(self, vehicle_id: int, origin: int, kind: str = "map") -> int:
+        """Newest version of `origin`'s map (or merge result) the peer is known to hold; -1 if none."""
         with self._lock:
             peer = self._peers.get(vehicle_id)
-            return -1 if peer is None else peer.has.get(origin, -1)
+            if peer is None:
+                return -1
+            return (peer.has_results if kind == "result" else peer.has).get(origin, -1)
 
     def failure(self, cause: str, vehicle_id: int | None = None, address: str = "") -> None:
         """Count a dropped transfer or connection by cause."""
@@ -247,3 +268,34 @@ class ReceivedStore:
     def total_bytes(self) -> int:
         with self._lock:
             return self._bytes
+
+
+class ResultStore:
+    """Newest merge-result message per sender (decoded, each at most wire.MAX_EDGES edges), at most
+    max_vehicles senders: a few kilobytes each, so bounded without a byte budget."""
+
+    def __init__(self, max_vehicles: int = 256):
+        self._lock = threading.Lock()
+        self._results: dict = {}
+        self.max_vehicles = max_vehicles
+
+    def offer(self, message) -> bool:
+        """Store a wire.MergeResultMessage if newer than the sender's held one; StoreFull if the
+        store holds max_vehicles senders already."""
+        with self._lock:
+            held = self._results.get(message.vehicle_id)
+            if held is not None and message.version <= held.version:
+                return False
+            if held is None and len(self._results) >= self.max_vehicles:
+                raise StoreFull(f"already holding merge results of {len(self._results)} vehicles")
+            self._results[message.vehicle_id] = message
+            return True
+
+    def version(self, vehicle_id: int) -> int:
+        with self._lock:
+            held = self._results.get(vehicle_id)
+            return -1 if held is None else held.version
+
+    def all(self) -> list:
+        with self._lock:
+            return list(self._results.values())

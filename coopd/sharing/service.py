@@ -6,6 +6,9 @@ keep the newest received map per vehicle, and report per-peer stats.
 
 Messages are opaque serialized maps; `inspect` reads their header (vehicle id, version, size,
 cells) and `verify` (optional) fully decodes them within the limits before they are stored.
+Merge-result messages (wire type 2, distributed merging) travel the same way and are authenticated
+the same way: `publish_result` offers ours, peers' are decoded and kept in `results` (newest per
+sender). They are not relayed: only the vehicle that computed a result sends it.
 """
 
 import logging
@@ -16,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from . import discovery, mtp
-from .peers import MessageSummary, PeerTable, ReceivedStore, StoreFull
+from .peers import MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
 log = logging.getLogger("coopd.sharing")
@@ -53,6 +56,9 @@ def wire_inspect(data) -> MessageSummary:
     """inspect() for real map messages (coopd.sharing.wire)."""
     from . import wire
 
+    if len(data) and data[0] == wire.MSG_MERGE_RESULT:
+        vid, version, size = wire.peek_merge_result(data)
+        return MessageSummary(vid, version, size, 0, "result")
     info = wire.peek(data)
     return MessageSummary(info.vehicle_id, info.map_version, info.total_size, info.cells)
 
@@ -81,12 +87,15 @@ class SharingService:
         self._on_map = on_map
         self.peers = PeerTable()
         self.received = ReceivedStore(config.max_vehicles, config.max_received_bytes)
+        self.results = ResultStore(config.max_vehicles)
+        """Peers' merge results (wire.MergeResultMessage), newest per sender."""
         self.arrivals: queue.Queue = queue.Queue(maxsize=64)
         """(vehicle id, version) of every stored map, for consumers that poll; oldest dropped if full."""
         self._targets = discovery.parse_targets(config.peers, config.peer_ports)
         self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
                                  config.listen_host, config.port, self._wants)
         self._own: tuple[int, bytes] | None = None
+        self._own_result: tuple[int, bytes] | None = None
         self._update = threading.Condition()
         self._stop = threading.Event()
         self._senders: dict[int, _Sender] = {}
@@ -137,12 +146,27 @@ class SharingService:
             self._own = (version, bytes(message))
             self._update.notify_all()
 
-    def pending_for(self, peer_vid: int) -> list[tuple[int, int, bytes]]:
-        """(origin, version, message) this peer lacks: our map, and with relay, others' maps."""
+    def publish_result(self, message: bytes, version: int) -> None:
+        """Offer our latest merge-result message (wire type 2); peers get it if `version` is newer."""
+        if version < 1:
+            raise ValueError(f"published versions start at 1, got {version}")
+        with self._update:
+            if self._own_result is not None and version <= self._own_result[0]:
+                raise ValueError(f"result version {version} is not newer than the published "
+                                 f"{self._own_result[0]}")
+            self._own_result = (version, bytes(message))
+            self._update.notify_all()
+
+    def pending_for(self, peer_vid: int) -> list[tuple[int, int, bytes, str]]:
+        """(origin, version, message, kind) this peer lacks: our map and merge result, and with relay,
+        others' maps."""
         out = []
         own = self._own
         if own is not None and own[0] > self.peers.has_version(peer_vid, self.vehicle_id):
-            out.append((self.vehicle_id, own[0], own[1]))
+            out.append((self.vehicle_id, own[0], own[1], "map"))
+        result = self._own_result
+        if result is not None and result[0] > self.peers.has_version(peer_vid, self.vehicle_id, "result"):
+            out.append((self.vehicle_id, result[0], result[1], "result"))
         if self.config.relay:
             settled = time.time() - self.config.relay_delay
             for m in self.received.all():
@@ -151,7 +175,7 @@ class SharingService:
                 if m.received_at > settled:
                     continue  # picked up by a later wake-up of the sender loop
                 if m.version > self.peers.has_version(peer_vid, m.vehicle_id):
-                    out.append((m.vehicle_id, m.version, m.data))
+                    out.append((m.vehicle_id, m.version, m.data, "map"))
         return out
 
     def decode(self, vehicle_id: int):
@@ -189,6 +213,8 @@ class SharingService:
         if summary.cells > s.max_cells:
             raise Rejected("oversize", f"{summary.cells} cells, limit {s.max_cells}")
         via = arrival.peer_vehicle_id if arrival.peer_vehicle_id is not None else summary.vehicle_id
+        if summary.kind == "result":
+            return self._accept_result(arrival, summary, via)
         nbytes = summary.size
         if summary.vehicle_id == self.vehicle_id:
             self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
@@ -233,6 +259,31 @@ class SharingService:
         if self.config.relay:
             with self._update:
                 self._update.notify_all()
+        return mtp.ACK_OK
+
+    def _accept_result(self, arrival: Arrival, summary: MessageSummary, via: int) -> int:
+        """A merge-result message: only from the vehicle that computed it, decoded, kept if newer."""
+        from . import wire
+
+        if summary.vehicle_id != via:
+            raise Rejected("relayed_result", f"merge result of vehicle {summary.vehicle_id} sent by {via}")
+        vid = summary.vehicle_id
+        if vid == self.vehicle_id or summary.version <= self.results.version(vid):
+            self.peers.received(via, summary.vehicle_id, summary.version, summary.size, arrival.seconds,
+                                arrival.address, kind="result")
+            return mtp.ACK_STALE
+        try:
+            message = wire.decode_merge_result(arrival.take(summary.size))
+        except ValueError as e:
+            raise Rejected("decode", f"merge result from vehicle {summary.vehicle_id}: {e}") from None
+        try:
+            self.results.offer(message)
+        except StoreFull as e:
+            raise Rejected("store_full", str(e)) from None
+        self.peers.received(via, summary.vehicle_id, summary.version, summary.size, arrival.seconds,
+                            arrival.address, kind="result")
+        log.info("merge result of vehicle %d v%d received (%d edges)", summary.vehicle_id,
+                 summary.version, len(message.edges))
         return mtp.ACK_OK
 
     # ------------------------------------------------------------------ discovery
@@ -312,7 +363,9 @@ class SharingService:
         snap.update({
             "vehicle_id": self.vehicle_id, "listen": "{}:{}".format(*self.address),
             "published_version": None if own is None else own[0],
+            "published_result_version": None if self._own_result is None else self._own_result[0],
             "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
+            "received_results": {r.vehicle_id: r.version for r in self.results.all()},
             "received_bytes_held": self.received.total_bytes(),
             "open_connections": self._server.open_connections,
             "inflight_bytes": self._server.inflight_bytes,
@@ -364,7 +417,7 @@ class _Sender:
         svc.peers.seen(self.vid, *self.target, connected=True)
         log.info("peer vehicle %d found at %s:%d", self.vid, *self.target)
         while not svc._stop.is_set():
-            for origin, version, message in svc.pending_for(self.vid):
+            for origin, version, message, kind in svc.pending_for(self.vid):
                 if svc._stop.is_set():
                     return
                 if origin != svc.vehicle_id and self.link.offer(origin, version) == mtp.ACK_STALE:
@@ -373,11 +426,13 @@ class _Sender:
                     continue
                 status, seconds = self.link.send_map(message)
                 if status == mtp.ACK_OK:
-                    svc.peers.sent(self.vid, origin, version, len(message), seconds)
-                    log.info("map of vehicle %d v%d sent to vehicle %d (%d bytes, %.3f s)",
+                    svc.peers.sent(self.vid, origin, version, len(message), seconds, kind)
+                    log.info("%s of vehicle %d v%d sent to vehicle %d (%d bytes, %.3f s)",
+                             "merge result" if kind == "result" else "map",
                              origin, version, self.vid, len(message), seconds)
                 else:
-                    svc.peers.peer_has(self.vid, origin, version, redundant=status == mtp.ACK_STALE)
+                    svc.peers.peer_has(self.vid, origin, version, redundant=status == mtp.ACK_STALE,
+                                       kind=kind)
                     if status != mtp.ACK_STALE:
                         svc.peers.failure("rejected_by_peer", self.vid)
             with svc._update:

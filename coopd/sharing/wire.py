@@ -5,6 +5,8 @@ Two message types carry a map:
 - type 1, coopd's map message: adds the origin (cells and metres), a map version counter,
   a timestamp, a float64 resolution, an encoding id and a CRC-32; it is versioned, and a
   message newer than this code reads is refused with MessageVersionError.
+Type 2 carries merge results (transforms between map frames, distributed merging): see
+encode_merge_result / decode_merge_result.
 Every input is hostile: sizes are checked against DecodeLimits before anything is allocated.
 """
 
@@ -23,7 +25,7 @@ from .codec import CodecError
 MSG_THESIS_MAP = 0
 MSG_COOPD_MAP = 1
 MSG_MERGE_RESULT = 2
-"""Reserved: a merged global map with per-vehicle offsets (not implemented yet)."""
+"""Merge results: validated transforms between vehicles' map frames (distributed merging)."""
 MSG_PEER_HELLO = 3
 """Reserved: peer hello / capability exchange incl. supported encodings (not implemented yet)."""
 MTP_MARKER = -128
@@ -228,7 +230,9 @@ def peek(data) -> MessageInfo:
         return _peek_coopd(data)
     if msg_type == MTP_MARKER:
         raise UnknownMessageType("byte 0 is -128, an MTP control frame, not a message")
-    if msg_type in (MSG_MERGE_RESULT, MSG_PEER_HELLO):
+    if msg_type == MSG_MERGE_RESULT:
+        raise UnknownMessageType("message type 2 is a merge result, not a map (decode_merge_result)")
+    if msg_type == MSG_PEER_HELLO:
         raise UnknownMessageType(f"message type {msg_type} is reserved and not implemented by this coopd")
     raise UnknownMessageType(f"unknown message type {msg_type}")
 
@@ -337,3 +341,131 @@ def decode_map(data, limits: DecodeLimits = DEFAULT_LIMITS) -> tuple[OccupancyGr
     cells = decode_payload(payload, info.encoding, info.cells)
     grid = OccupancyGrid(cells.reshape(info.shape), info.resolution, info.offset)
     return grid, MapMeta(info.vehicle_id, info.map_version, info.stamp)
+
+
+# ---------------------------------------------------------------------------- merge results (type 2)
+MERGE_RESULT_VERSION = 1
+RESULT_HEADER = struct.Struct("<bBHiQdHHI")
+"""type, format version, header length, sender vehicle id, result version, stamp, edge count,
+edge size, CRC-32 of the edges (docs/protocol.md §3.3)."""
+RESULT_EDGE = struct.Struct("<ii16dffQQB3x")
+"""vehicle a, vehicle b, 4x4 transform b -> a (row-major float64), score, overlap, map version of
+a, map version of b, flags, 3 bytes padding."""
+MAX_EDGES = 64
+EDGE_FULL = 1
+"""Edge flag: found by a full registration (not by refining a hint)."""
+MAX_TRANSLATION_M = 1e6
+"""Transforms shifting a map further than this are refused (no swarm flies 1000 km apart)."""
+
+
+@dataclass(frozen=True)
+class MergeEdge:
+    """A validated merge of b's map into a's: transform carries b's map frame into a's."""
+
+    a: int
+    b: int
+    transform: np.ndarray
+    score: float
+    overlap: float
+    version_a: int
+    version_b: int
+    flags: int = 0
+
+
+@dataclass(frozen=True)
+class MergeResultMessage:
+    """The merge results a vehicle publishes: its newest validated edges."""
+
+    vehicle_id: int
+    version: int
+    """Result version counter: increases whenever the sender publishes new results."""
+    stamp: float
+    edges: tuple[MergeEdge, ...]
+
+    @property
+    def size(self) -> int:
+        return RESULT_HEADER.size + len(self.edges) * RESULT_EDGE.size
+
+
+def _check_edge(e: MergeEdge) -> np.ndarray:
+    """The edge's transform as float64 4x4; WireError unless it is a sane rigid transform."""
+    from coopd.geometry import check_rigid
+
+    t = np.asarray(e.transform, dtype=np.float64)
+    if t.shape == (4, 4) and np.all(np.isfinite(t)) and np.abs(t[:3, :3]).max() > 1.0 + 1e-6:
+        raise WireError(f"edge {e.a}->{e.b}: transform is not rigid (rotation entries beyond 1)")
+    try:
+        t = check_rigid(t, tol=1e-6)
+    except ValueError as err:
+        raise WireError(f"edge {e.a}->{e.b}: {err}") from None
+    if np.abs(t[:3, 3]).max() > MAX_TRANSLATION_M:
+        raise WireError(f"edge {e.a}->{e.b}: translation {t[:3, 3]} m is out of range")
+    if e.a == e.b:
+        raise WireError(f"edge {e.a}->{e.b} joins a map to itself")
+    if not (0.0 <= e.score <= 1.0 and 0.0 <= e.overlap <= 1.0):
+        raise WireError(f"edge {e.a}->{e.b}: score {e.score} / overlap {e.overlap} outside 0..1")
+    return t
+
+
+def encode_merge_result(msg: MergeResultMessage) -> bytes:
+    """A merge-result message (type 2); ValueError (WireError) on edges a decoder would refuse."""
+    if len(msg.edges) > MAX_EDGES:
+        raise WireError(f"{len(msg.edges)} edges, at most {MAX_EDGES}")
+    _check_int32("vehicle id", [msg.vehicle_id, *(v for e in msg.edges for v in (e.a, e.b))])
+    if not (0 <= int(msg.version) < 2**64 and math.isfinite(msg.stamp)):
+        raise ValueError(f"result version must be 0..2**64-1, stamp finite: {msg.version}, {msg.stamp}")
+    body = bytearray()
+    for e in msg.edges:
+        t = _check_edge(e)
+        if not (0 <= e.version_a < 2**64 and 0 <= e.version_b < 2**64 and 0 <= e.flags < 256):
+            raise ValueError(f"edge {e.a}->{e.b}: map versions or flags out of range")
+        body += RESULT_EDGE.pack(int(e.a), int(e.b), *t.reshape(-1), float(e.score), float(e.overlap),
+                                 int(e.version_a), int(e.version_b), int(e.flags))
+    header = RESULT_HEADER.pack(MSG_MERGE_RESULT, MERGE_RESULT_VERSION, RESULT_HEADER.size,
+                                int(msg.vehicle_id), int(msg.version), float(msg.stamp), len(msg.edges),
+                                RESULT_EDGE.size, zlib.crc32(body))
+    return header + bytes(body)
+
+
+def peek_merge_result(data) -> tuple[int, int, int]:
+    """(sender vehicle id, result version, total bytes) from a type-2 header, validated."""
+    data = memoryview(data)
+    _need(data, RESULT_HEADER.size, "a merge-result header")
+    (msg_type, fmt, header_len, vid, version, stamp, count, edge_size,
+     _) = RESULT_HEADER.unpack_from(data)
+    if msg_type != MSG_MERGE_RESULT:
+        raise UnknownMessageType(f"message type {msg_type} is not a merge result")
+    if fmt > MERGE_RESULT_VERSION:
+        raise MessageVersionError(f"merge-result format version {fmt} is newer than this coopd reads "
+                                  f"(<= {MERGE_RESULT_VERSION})")
+    if fmt < 1:
+        raise WireError(f"merge-result format version {fmt} does not exist")
+    if header_len != RESULT_HEADER.size or edge_size != RESULT_EDGE.size:
+        raise WireError(f"header length {header_len} / edge size {edge_size} differ from format "
+                        f"{fmt}'s {RESULT_HEADER.size} / {RESULT_EDGE.size}")
+    if count > MAX_EDGES:
+        raise WireError(f"{count} edges, at most {MAX_EDGES}")
+    if not math.isfinite(stamp):
+        raise WireError(f"timestamp {stamp} is not finite")
+    return vid, version, header_len + count * edge_size
+
+
+def decode_merge_result(data) -> MergeResultMessage:
+    """A complete merge-result message, every field checked (sizes before anything is allocated)."""
+    vid, version, total = peek_merge_result(data)
+    if len(data) != total:
+        raise WireError(f"message is {len(data)} bytes but its header announces {total}")
+    _, _, _, _, _, stamp, count, _, crc = RESULT_HEADER.unpack_from(data)
+    body = memoryview(data)[RESULT_HEADER.size:]
+    if zlib.crc32(body) != crc:
+        raise WireError("merge-result CRC-32 mismatch: the message is corrupted")
+    edges = []
+    for i in range(count):
+        f = RESULT_EDGE.unpack_from(body, i * RESULT_EDGE.size)
+        e = MergeEdge(f[0], f[1], np.array(f[2:18], dtype=np.float64).reshape(4, 4), f[18], f[19],
+                      f[20], f[21], f[22])
+        if e.flags & ~EDGE_FULL:
+            raise WireError(f"edge {e.a}->{e.b}: flags 0x{e.flags:02x} not defined")
+        _check_edge(e)
+        edges.append(e)
+    return MergeResultMessage(vid, version, stamp, tuple(edges))

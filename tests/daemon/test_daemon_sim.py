@@ -211,6 +211,11 @@ def test_two_daemons_share_their_maps():
                 report[f"vehicle {i + 1}"]["offset_error_vs_truth"] = {"m": round(float(err), 3),
                                                                        "yaw_deg": round(float(yaw_err), 2)}
                 assert merges["global_version"] >= 1
+                assert merges["full_registrations"] + merges["hinted"] >= 1 and merges["cpu_s"] > 0
+                # distributed merging: our validated transform reaches the peer as a merge result
+                peer, vid = daemons[1 - i], str(i + 1)
+                assert wait_until(lambda p=peer, v=vid: v in p.status()["sharing"]["received_results"], 15,
+                                  poll=0.5), peer.status()["sharing"]
         print(json.dumps(report))
         # received maps are checkpointed on stop and restored on start; restarted with a memory budget
         # only ~2 MiB above the interpreter's own RSS, a merge no longer fits: deferred, reported

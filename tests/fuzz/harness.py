@@ -203,6 +203,58 @@ class WireTarget(Target):
             raise Finding("wire: decode(encode(decode(x))) differs from decode(x)")
 
 
+class MergeResultTarget(Target):
+    """wire.decode_merge_result and the sharing service's inspect on type-2 messages (merge results):
+    only WireError; a decoded message re-encodes to one that decodes to the same fields."""
+
+    name = "merge_result"
+    max_len = 1 << 14
+
+    def seeds(self) -> list[bytes]:
+        from coopd.geometry import euler_to_matrix, rigid
+
+        rng = random.Random(5)
+        out = []
+        for n in (0, 1, 3, wire.MAX_EDGES):
+            edges = tuple(wire.MergeEdge(
+                rng.randint(0, 20), 21 + i, rigid(euler_to_matrix(*(rng.uniform(-3, 3) for _ in range(3))),
+                                                  [rng.uniform(-50, 50) for _ in range(3)]),
+                rng.random(), rng.random(), rng.randint(0, 2**40), rng.randint(0, 2**40), rng.randint(0, 1))
+                for i in range(n))
+            out.append(wire.encode_merge_result(wire.MergeResultMessage(rng.randint(0, 99), n + 1, 1.7e9,
+                                                                        edges)))
+        return out
+
+    def post_mutate(self, data: bytes, rng: random.Random) -> bytes:
+        """Half the mutants get a matching CRC, so the edge checks behind it are reached."""
+        head = wire.RESULT_HEADER.size
+        if len(data) < head or rng.random() < 0.5:
+            return data
+        out = bytearray(data)
+        struct.pack_into("<I", out, head - 4, zlib.crc32(out[head:]))
+        return bytes(out)
+
+    def check(self, data: bytes) -> None:
+        from coopd.sharing.service import wire_inspect
+
+        with time_limit(CALL_LIMIT_S, "wire.decode_merge_result"):
+            if data[:1] == bytes([wire.MSG_MERGE_RESULT]):
+                expect_only(wire.WireError, "wire_inspect", lambda: wire_inspect(data))
+            msg = expect_only(wire.WireError, "wire.decode_merge_result",
+                              lambda: wire.decode_merge_result(data))
+        if msg is None:
+            return
+        again = wire.decode_merge_result(wire.encode_merge_result(msg))
+        same = (again.vehicle_id, again.version, again.stamp, len(again.edges)) == \
+            (msg.vehicle_id, msg.version, msg.stamp, len(msg.edges))
+        for e, f in zip(msg.edges, again.edges, strict=True):
+            same &= (e.a, e.b, e.score, e.overlap, e.version_a, e.version_b, e.flags) == \
+                (f.a, f.b, f.score, f.overlap, f.version_a, f.version_b, f.flags)
+            same &= bool(np.array_equal(e.transform, f.transform))
+        if not same:
+            raise Finding("merge_result: decode(encode(decode(x))) differs from decode(x)")
+
+
 class CmapTarget(WireTarget):
     """io.cmap.load_cmap on a file holding the input: only WireError, never OSError or others."""
 
@@ -846,6 +898,7 @@ def make_target(name: str, directory):
     """The target called `name`; file and socket targets keep their files under `directory`."""
     factories = {
         "codec": CodecTarget, "planes": PlanesTarget, "wire": WireTarget, "mtp": MtpTarget,
+        "merge_result": MergeResultTarget,
         "camera_header": CameraHeaderTarget, "mavlink": MavlinkIngestTarget,
         "cmap": lambda: CmapTarget(directory), "config": lambda: ConfigTarget(directory),
         "transport": TransportTarget, "control": lambda: ControlTarget(directory),
@@ -857,5 +910,5 @@ def make_target(name: str, directory):
     return factories[name]()
 
 
-TARGETS = ("codec", "planes", "wire", "cmap", "mtp", "transport", "camera_header", "camera_socket",
-           "control", "control_client", "config", "mavlink", "mavlink_udp")
+TARGETS = ("codec", "planes", "wire", "merge_result", "cmap", "mtp", "transport", "camera_header",
+           "camera_socket", "control", "control_client", "config", "mavlink", "mavlink_udp")

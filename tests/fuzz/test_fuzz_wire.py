@@ -1,5 +1,6 @@
 """Fuzz the map serializer (peek, decode_map with DecodeLimits) and .cmap loading."""
 
+import random
 import struct
 
 import pytest
@@ -8,7 +9,7 @@ from hypothesis import strategies as st
 
 from coopd.sharing import wire
 from tests.fuzz.ci_budget import CI_SETTINGS, assert_mutations_clean
-from tests.fuzz.harness import CmapTarget, WireTarget
+from tests.fuzz.harness import CmapTarget, MergeResultTarget, WireTarget
 
 WIRE = WireTarget()
 SEEDS = WIRE.seeds()
@@ -43,3 +44,23 @@ def test_header_fields_set_to_arbitrary_values(seed, data):
     off = data.draw(st.integers(0, header - size))
     raw = data.draw(st.binary(min_size=size, max_size=size))
     WIRE.check(seed[:off] + raw + seed[off + size:])
+
+
+MERGE_RESULT = MergeResultTarget()
+
+
+def test_mutated_merge_results_keep_the_contract():
+    assert_mutations_clean(MERGE_RESULT)
+
+
+@CI_SETTINGS
+@given(st.sampled_from(MERGE_RESULT.seeds()[1:]), st.data())
+def test_merge_result_fields_set_to_arbitrary_values(seed, data):
+    """Any 1-8 bytes of a valid merge result rewritten, the CRC fixed or not."""
+    size = data.draw(st.integers(1, 8))
+    off = data.draw(st.integers(0, len(seed) - size))
+    raw = data.draw(st.binary(min_size=size, max_size=size))
+    mutant = seed[:off] + raw + seed[off + size:]
+    if data.draw(st.booleans()):
+        mutant = MERGE_RESULT.post_mutate(mutant, random.Random(0))  # Random(0) draws 0.84: CRC fixed
+    MERGE_RESULT.check(mutant)

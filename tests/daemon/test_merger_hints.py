@@ -1,0 +1,134 @@
+"""The Merger's distributed merging: own warm start, peers' merge results as hints (a wrong one is
+refused and the full search decides), counters for the bench, and the results it publishes."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from coopd.daemon.budget import MemoryBudget
+from coopd.daemon.merger import Merger
+from coopd.geometry import invert, rigid, rotation_angle_deg, rotation_z
+from coopd.merging import merge_all
+from coopd.merging.benchset import make_chain, make_world
+from coopd.sharing import wire
+from coopd.sharing.wire import MapMeta, encode_map
+
+
+@pytest.fixture(scope="module")
+def chain():
+    """Maps 0-1 and 1-2 overlap, 0-2 barely: map 2 merges into 0's frame only through map 1."""
+    return make_chain(make_world(0), 3, [(6.0, 12.5), (10.0, 12.5), (14.0, 12.5)])
+
+
+def _truth(maps, i, j):
+    return invert(maps[i].world_from_map) @ maps[j].world_from_map
+
+
+def _close(t, truth, m=0.3, deg=2.0):
+    return (np.linalg.norm(np.asarray(t)[:3, 3] - truth[:3, 3]) < m
+            and rotation_angle_deg(np.asarray(t)[:3, :3].T @ truth[:3, :3]) < deg)
+
+
+def _stored(vid, grid, version=1):
+    return SimpleNamespace(vehicle_id=vid, version=version, data=encode_map(grid, MapMeta(vid, version)))
+
+
+def _result_message(vid, *edges):
+    return wire.MergeResultMessage(vid, 1, 0.0, tuple(
+        wire.MergeEdge(a, b, t, 0.97, 0.3, 1, 1, wire.EDGE_FULL) for a, b, t in edges))
+
+
+def _merger(chain, peer_results=(), distributed=True, published=None):
+    received = [_stored(1, chain[1].grid), _stored(2, chain[2].grid)]
+    budget = MemoryBudget(256 << 20, baseline_bytes=0)
+    return Merger(0, lambda: (chain[0].grid.copy(), 4), lambda: received, budget, period_s=3600,
+                  merge_fn=merge_all, distributed=distributed,
+                  peer_results=lambda: list(peer_results),
+                  publish_results=None if published is None else published.append)
+
+
+@pytest.mark.slow
+def test_own_warm_start_replaces_the_full_search_and_validated_edges_are_published(chain):
+    published = []
+    m = _merger(chain, published=published)
+    assert m.merge_once("first")["outcome"] == "done"
+    s = m.status()
+    assert s["full_registrations"] >= 2 and s["hinted"] == 0 and s["cpu_s"] > 0
+    assert [o["method"] for o in m.offsets.values()] == ["full", "full"]
+    first = published[-1]
+    assert first.vehicle_id == 0 and [(e.a, e.b, e.flags) for e in first.edges] == [(0, 1, 1), (0, 2, 1)]
+    assert all(_close(e.transform, _truth(chain, 0, e.b)) for e in first.edges)
+    assert wire.decode_merge_result(wire.encode_merge_result(first)).edges[0].version_a == 4
+    cpu_first = s["cpu_s"]
+    assert m.merge_once("again")["outcome"] == "done"
+    s = m.status()
+    assert s["full_registrations"] == m.counters["full_registrations"] and s["hinted_own"] == 2
+    assert s["hinted"] == 2 and s["hint_rejected"] == 0 and s["full_registrations"] <= 3
+    assert [o["method"] for o in m.offsets.values()] == ["hint:own", "hint:own"]
+    assert s["cpu_s"] - cpu_first < cpu_first  # the second merge cost less than the first
+    assert published[-1].version > first.version and {e.flags for e in published[-1].edges} == {0}
+    assert all(_close(np.reshape(o["transform"], (4, 4)), _truth(chain, 0, v)) for v, o in m.offsets.items())
+
+
+@pytest.mark.slow
+def test_a_peers_edges_replace_every_full_registration_unless_distributed_is_off(chain):
+    peer = [_result_message(1, (1, 0, _truth(chain, 1, 0)), (1, 2, _truth(chain, 1, 2)))]
+    m = _merger(chain, peer)
+    assert m.merge_once()["outcome"] == "done"
+    assert m.counters["full_registrations"] == 0 and m.counters["hinted_peer"] == 2
+    assert all(o["accepted"] and o["method"] == "hint:peer" for o in m.offsets.values())
+    assert all(_close(np.reshape(o["transform"], (4, 4)), _truth(chain, 0, v)) for v, o in m.offsets.items())
+    published = []
+    off = _merger(chain, peer, distributed=False, published=published)
+    assert off.merge_once()["outcome"] == "done"
+    assert off.counters["hinted_peer"] == 0 and off.counters["full_registrations"] >= 2
+    assert off.status()["distributed"] is False and published == []  # neither used nor published
+
+
+@pytest.mark.slow
+def test_a_peers_wrong_edge_is_refused_and_the_map_still_merges_correctly(chain):
+    wrong = rigid(rotation_z(np.radians(35)), [1.5, -1.0, 0.0]) @ _truth(chain, 1, 0)
+    m = _merger(chain, [_result_message(1, (1, 0, wrong))])
+    assert m.merge_once()["outcome"] == "done"
+    c = m.counters
+    assert c["hint_rejected"] >= 1 and c["hinted_peer"] == 0 and c["full_registrations"] >= 2
+    assert m.offsets[1]["accepted"] and m.offsets[1]["method"] == "full"
+    assert _close(np.reshape(m.offsets[1]["transform"], (4, 4)), _truth(chain, 0, 1))
+
+
+def _daemon_config(tmp_path, **merging):
+    from coopd.daemon.config import from_dict
+
+    return from_dict({
+        "vehicle": {"mavlink": "udpin:127.0.0.1:21160"},
+        "camera": {"source": f"socket:{tmp_path}/no-camera.sock"},
+        "sharing": {"enabled": True, "listen_host": "127.0.0.1", "port": 21161},
+        "merging": merging,
+        "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock")},
+    })
+
+
+def test_the_daemon_hands_its_merge_results_to_sharing_and_peers_results_to_the_merger(tmp_path):
+    from coopd.daemon.service import Daemon
+
+    d = Daemon(_daemon_config(tmp_path), merge_fn=merge_all)
+    assert d.merger.distributed is True
+    msg = _result_message(1, (1, 3, rigid(rotation_z(0.2), [1.0, 0.0, 0.0])))
+    d.merger.publish_results(msg)
+    pending = d.sharing.pending_for(7)
+    assert [(origin, version, kind) for origin, version, _, kind in pending] == [(1, 1, "result")]
+    assert wire.decode_merge_result(pending[0][2]).edges[0].b == 3
+    assert d.sharing.results.offer(_result_message(5, (5, 1, np.eye(4))))
+    assert [r.vehicle_id for r in d.merger.peer_results()] == [5]
+    status = d.merger.status()
+    assert {"full_registrations", "hinted", "hinted_own", "hinted_peer", "hint_rejected", "cpu_s",
+            "done", "failed", "deferred", "offsets", "last"} <= set(status)
+    assert Daemon(_daemon_config(tmp_path, distributed=False), merge_fn=merge_all).merger.distributed is False
+
+
+def test_command_line_switches_distributed_merging_off():
+    from coopd.daemon.main import build_config, parse_args
+
+    assert build_config(parse_args(["--no-config"])).merging.distributed is True
+    assert build_config(parse_args(["--no-config", "--no-distributed"])).merging.distributed is False
