@@ -66,6 +66,7 @@ class Merger:
         params=None,
         limits: DecodeLimits = DEFAULT_LIMITS,
         min_gap_s: float = 0.0,
+        local_version: Callable[[], int] | None = None,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -76,7 +77,11 @@ class Merger:
         self.merge_fn = merge_fn
         self.params = params
         self.limits = limits
-        self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0}
+        self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0, "unchanged": 0}
+        self.local_version = local_version
+        """The local map's version without copying it; given, a merge whose inputs (this and every
+        received map's version) equal those of the last merge done is skipped, counted "unchanged"."""
+        self._merged_inputs: tuple | None = None
         self.last: dict | None = None
         self.offsets: dict[int, dict] = {}
         self._global: tuple[OccupancyGrid, MapMeta] | None = None
@@ -140,16 +145,27 @@ class Merger:
                 if self._stop.is_set():
                     return
                 ticket = self._requested
-                self._urgent = False
+                urgent, self._urgent = self._urgent, False
                 reasons, self._reasons = self._reasons or ["period"], []
             if time.monotonic() >= next_periodic:
                 next_periodic = time.monotonic() + self.period_s
             if self.enabled and self.available:
-                self.merge_once(",".join(sorted(set(reasons))))
-                not_before = time.monotonic() + self.min_gap_s
+                inputs = self.inputs()
+                if not urgent and inputs is not None and inputs == self._merged_inputs:
+                    self.counters["unchanged"] += 1  # merging is deterministic: the same global map again
+                else:
+                    if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
+                        self._merged_inputs = inputs
+                    not_before = time.monotonic() + self.min_gap_s
             with self._cv:
                 self._completed = max(self._completed, ticket)
                 self._cv.notify_all()
+
+    def inputs(self) -> tuple | None:
+        """(local version, (vehicle id, version) of every received map), None without local_version."""
+        if self.local_version is None:
+            return None
+        return self.local_version(), tuple(sorted((m.vehicle_id, m.version) for m in self.received_maps()))
 
     def merge_once(self, reason: str = "request") -> dict:
         """One merge of the local map with every received map; returns and records the outcome."""

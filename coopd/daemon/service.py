@@ -132,6 +132,13 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
     )
 
 
+def save_map_frame(state_dir, vehicle_id: int, origin_fc_enu) -> None:
+    """Write FRAME_FILE atomically: where the local map's frame sits in the FC's local frame, read
+    back on start with the local checkpoint (tools that prepare a state dir write it the same way)."""
+    data = json.dumps({"vehicle_id": vehicle_id, "origin_fc_enu": [float(v) for v in origin_fc_enu]})
+    write_atomic(Path(state_dir) / FRAME_FILE, data.encode())
+
+
 # ------------------------------------------------------------------------------------ the daemon
 class Daemon:
     """One vehicle's coopd: the stages, their threads, persistence, control and health."""
@@ -179,6 +186,7 @@ class Daemon:
             merge_fn=self.merge_fn,
             limits=DecodeLimits(config.sharing.max_map_cells, config.sharing.max_map_bytes),
             min_gap_s=min(config.merging.period_s, MERGE_MIN_GAP_S),
+            local_version=lambda: self.mapper.version,
         )
         self.control = ControlServer(
             config.daemon.control_socket,
@@ -289,9 +297,8 @@ class Daemon:
         origin = self.link.odometry.origin_enu
         if origin is None or self._origin_saved:
             return
-        data = json.dumps({"vehicle_id": self.vehicle_id, "origin_fc_enu": [float(v) for v in origin]})
         try:
-            write_atomic(self.state_dir / FRAME_FILE, data.encode())
+            save_map_frame(self.state_dir, self.vehicle_id, origin)
         except OSError as e:
             log.error("cannot save the map frame to %s: %s", self.state_dir / FRAME_FILE, e)
             return
