@@ -67,6 +67,7 @@ class Merger:
         limits: DecodeLimits = DEFAULT_LIMITS,
         min_gap_s: float = 0.0,
         local_version: Callable[[], int] | None = None,
+        settle_s: float = 0.0,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -90,6 +91,11 @@ class Merger:
         self._urgent = False
         self.min_gap_s = min_gap_s
         """Received maps trigger a merge at most this often (a peer publishes every second)."""
+        self.settle_s = settle_s
+        """A requested merge waits until no request came for this long (the maps of a sharing burst
+        merge together, not the first one alone), but at most max(settle_s, min_gap_s)."""
+        self._pending_since: float | None = None
+        self._last_request_at = 0.0
         self._completed = 0
         self._reasons: list[str] = []
         self._stop = threading.Event()
@@ -105,6 +111,9 @@ class Merger:
         with self._cv:
             self._requested += 1
             self._urgent |= urgent
+            self._last_request_at = time.monotonic()
+            if self._pending_since is None:
+                self._pending_since = self._last_request_at
             if len(self._reasons) < 16:
                 self._reasons.append(reason)
             self._cv.notify_all()
@@ -130,7 +139,8 @@ class Merger:
 
     # ----------------------------------------------------------------------------------- loop
     def run(self) -> None:
-        """Merge every period_s, on request (at most one merge per min_gap_s), at once for merge-now."""
+        """Merge every period_s, on request (settled, at most one merge per min_gap_s), at once for
+        merge-now; skip a merge whose inputs are those of the last one done."""
         next_periodic = time.monotonic() + self.period_s
         not_before = 0.0
         while not self._stop.is_set():
@@ -138,13 +148,14 @@ class Merger:
                 while not self._stop.is_set():
                     now = time.monotonic()
                     pending = self._requested > self._completed
-                    if self._urgent or (pending and now >= not_before) or now >= next_periodic:
+                    due = max(not_before, self._settled_at()) if pending else next_periodic
+                    if self._urgent or now >= due or now >= next_periodic:
                         break
-                    wake = min(next_periodic, not_before) if pending else next_periodic
-                    self._cv.wait(max(0.0, wake - now))
+                    self._cv.wait(max(0.0, min(due, next_periodic) - now))
                 if self._stop.is_set():
                     return
                 ticket = self._requested
+                self._pending_since = None
                 urgent, self._urgent = self._urgent, False
                 reasons, self._reasons = self._reasons or ["period"], []
             if time.monotonic() >= next_periodic:
@@ -160,6 +171,13 @@ class Merger:
             with self._cv:
                 self._completed = max(self._completed, ticket)
                 self._cv.notify_all()
+
+    def _settled_at(self) -> float:
+        """When the pending requests have settled: settle_s after the last one, capped after the first."""
+        if self._pending_since is None:
+            return 0.0
+        cap = self._pending_since + max(self.settle_s, self.min_gap_s)
+        return min(self._last_request_at + self.settle_s, cap)
 
     def inputs(self) -> tuple | None:
         """(local version, (vehicle id, version) of every received map), None without local_version."""

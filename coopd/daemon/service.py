@@ -64,7 +64,9 @@ SNAPSHOT_PAD_CELLS = 4
 """Unknown cells kept around the known box of a snapshot (room for the merge's filters)."""
 MERGE_NOW_TIMEOUT_S = 100.0
 MERGE_MIN_GAP_S = 5.0
-"""Maps arriving faster than this (peers publish every second) are merged together, not one by one."""
+"""Maps arriving faster than this (peers publish every second) are merged together, not one by one.
+A received map also waits until no other arrived for one discovery scan period (the peers found in a
+scan deliver within it), so the maps of a swarm's first exchange merge in one go (Merger.settle_s)."""
 SHUTDOWN_JOIN_S = 2.0
 FROM_BUILD = "from-build"
 """Daemon(merge_fn=FROM_BUILD): coopd.merging.merge_all if this build has it (None: not available)."""
@@ -187,6 +189,7 @@ class Daemon:
             limits=DecodeLimits(config.sharing.max_map_cells, config.sharing.max_map_bytes),
             min_gap_s=min(config.merging.period_s, MERGE_MIN_GAP_S),
             local_version=lambda: self.mapper.version,
+            settle_s=min(config.sharing.scan_period_s, MERGE_MIN_GAP_S),
         )
         self.control = ControlServer(
             config.daemon.control_socket,

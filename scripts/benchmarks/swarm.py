@@ -56,6 +56,7 @@ server admits at most max_connections_per_address = 4 connections from one addre
 def host(vid: int, shared_address: bool = False) -> str:
     """The loopback address of vehicle vid."""
     return "127.0.0.1" if shared_address else f"127.0.0.{HOST_BASE + vid}"
+MERGE_COUNTERS = ("done", "failed", "deferred", "nothing_to_merge", "unchanged")
 POLL_S = 0.25
 STATUS_TIMEOUT_S = 10.0
 
@@ -199,10 +200,11 @@ class Swarm:
         except (ControlError, OSError):
             return None
 
-    def cpu(self, vid: int, st: dict) -> dict:
+    def cpu(self, vid: int) -> dict:
         """CPU seconds so far of daemon vid: the whole process and its merging thread."""
         pid = self.procs[vid].pid
-        tid = next((t["tid"] for t in st.get("threads", []) if t.get("thread") == "coopd-merging"), None)
+        threads = self.started[vid].get("threads", [])
+        tid = next((t["tid"] for t in threads if t.get("thread") == "coopd-merging"), None)
         merging = None if tid is None else cpu_s(f"/proc/{pid}/task/{tid}/stat")
         return {"process": cpu_s(f"/proc/{pid}/stat"), "merging_thread": merging}
 
@@ -238,9 +240,10 @@ def run_size(maps: list, merging: dict, args, label: str) -> dict:
     try:
         swarm.prepare()
         row["startup_s"] = round(swarm.start(args.start_timeout), 1)
-        cpu0 = {vid: swarm.cpu(vid, swarm.started[vid]) for vid in swarm.ids}
+        cpu0 = {vid: swarm.cpu(vid) for vid in swarm.ids}
         swarm.resume()
         t0 = time.monotonic()
+        row["load_avg_1min_at_start"] = round(os.getloadavg()[0], 2)  # the machine is shared: noise
         t_share = t_global = None
         first_global: dict[int, float] = {}
         last: dict[int, dict] = {}
@@ -261,17 +264,11 @@ def run_size(maps: list, merging: dict, args, label: str) -> dict:
             if t_share is not None and t_global is not None:
                 break
             time.sleep(POLL_S)
-        if t_global is not None and args.linger > 0:  # what the daemons still do once converged
-            at_global = {vid: dict(s["merges"]) for vid, s in last.items()}
-            time.sleep(args.linger)
-            for vid in swarm.ids:
-                st = swarm.status(vid)
-                if st is not None:
-                    last[vid] = st
-            row["merges_after_global"] = sum(
-                last[v]["merges"][k] - at_global[v][k] for v in swarm.ids for k in ("done", "failed"))
-            row["linger_s"] = args.linger
-        row |= summarise(swarm, last, cpu0, truths, args, t_share, t_global, first_global)
+        cpu1 = {vid: swarm.cpu(vid) for vid in swarm.ids}
+        row["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
+        row |= summarise(swarm, last, cpu0, cpu1, truths, args, t_share, t_global, first_global)
+        if t_global is not None and args.linger > 0:
+            row["after_global"] = linger(swarm, last, cpu1, args.linger)
     finally:
         swarm.stop()
         if args.keep:
@@ -281,7 +278,24 @@ def run_size(maps: list, merging: dict, args, label: str) -> dict:
     return row
 
 
-def summarise(swarm: Swarm, last: dict, cpu0: dict, truths: dict, args, t_share, t_global,
+def linger(swarm: Swarm, at_global: dict, cpu1: dict, seconds: float) -> dict:
+    """What the daemons still do for `seconds` once every one holds the global map (all of it waste
+    while no map changes): merges done, merges running at the end, merging-thread CPU."""
+    time.sleep(seconds)
+    end = {vid: swarm.status(vid) for vid in swarm.ids}
+    cpu2 = {vid: swarm.cpu(vid) for vid in swarm.ids}
+    live = [v for v in swarm.ids if end[v] is not None and v in at_global]
+    return {
+        "seconds": seconds,
+        "merges_done": sum(end[v]["merges"]["done"] - at_global[v]["merges"]["done"] for v in live),
+        "merging_at_end": sum(end[v]["merges"]["state"] == "merging" for v in live),
+        "unchanged_skipped": sum(end[v]["merges"].get("unchanged", 0) for v in live),
+        "merging_thread_cpu_s": round(sum(_delta(cpu2[v]["merging_thread"], cpu1[v]["merging_thread"]) or 0.0
+                                          for v in swarm.ids), 2),
+    }
+
+
+def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, args, t_share, t_global,
               first_global) -> dict:
     """The figures of one run from the daemons' last statuses."""
     daemons = []
@@ -291,12 +305,12 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, truths: dict, args, t_share,
             daemons.append({"vehicle": vid, "status": "never answered"})
             continue
         merges = st["merges"]
-        cpu = swarm.cpu(vid, st)
+        cpu = cpu1[vid]
         j = judge_offsets(merges.get("offsets", {}), truths[vid], args.tol_m, args.tol_deg)
         daemons.append({
             "vehicle": vid,
             "held_maps": sorted(p["vehicle_id"] for p in st["peers"] if p.get("map_version") is not None),
-            "merges": {k: merges.get(k) for k in ("done", "failed", "deferred", "nothing_to_merge")},
+            "merges": {k: merges.get(k) for k in MERGE_COUNTERS},
             "full_registrations": merges.get("full_registrations"),
             "hinted": merges.get("hinted"),
             "merge_cpu_s_reported": merges.get("cpu_s"),
@@ -337,13 +351,14 @@ def _delta(a, b):
 def table(rows: list[dict]) -> str:
     """The printed table: one line per size and mode."""
     head = ("N", "mode", "t_share", "t_global", "t_total", "merges", "accepted", "wrong", "merge thr CPU",
-            "proc CPU", "RSS max MiB")
+            "proc CPU", "RSS max MiB", "CPU after")
     lines = ["  ".join(f"{h:>9}" for h in head)]
     for r in rows:
         cells = (r["drones"], r["mode"], _s(r.get("t_share_s")), _s(r.get("t_global_s")),
                  _s(r.get("t_total_s")), r.get("merges_done"),
                  f"{r.get('accepted_offsets')}/{r.get('wanted_offsets')}", r.get("wrong_merges"),
-                 _s(r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")), r.get("peak_rss_mib_max"))
+                 _s(r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")), r.get("peak_rss_mib_max"),
+                 _s((r.get("after_global") or {}).get("merging_thread_cpu_s")))
         lines.append("  ".join(f"{str(c):>9}" for c in cells))
     lines.append(f"thesis (§10.4, 10 drones): share {THESIS['t_share_s']} s, merge {THESIS['t_merge_s']} s, "
                  f"total {THESIS['t_total_s']} s; goal here: 10 drones <= {GOAL_TOTAL_S:.0f} s total")

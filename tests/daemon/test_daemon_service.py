@@ -320,6 +320,37 @@ def test_unchanged_inputs_are_not_merged_again_but_new_versions_and_merge_now_ar
         runner.join(5)
 
 
+def test_received_maps_merge_once_settled_and_at_most_a_gap_after_the_first():
+    calls = []
+
+    def merge_all(reference, others, params):
+        calls.append(time.monotonic())
+        return SimpleNamespace(global_map=reference.copy(), rounds=1, results=[
+            SimpleNamespace(accepted=True, transform=np.eye(4), score=1.0, reason="test") for _ in others])
+
+    budget = MemoryBudget(64 << 20, baseline_bytes=0)
+    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=3600,
+               merge_fn=merge_all, min_gap_s=1.5, settle_s=0.5)
+    runner = threading.Thread(target=m.run, daemon=True)
+    runner.start()
+    try:
+        t0 = time.monotonic()
+        for _ in range(3):  # a burst of maps: one merge, settle_s after the last
+            m.request("map")
+            time.sleep(0.2)
+        assert wait_until(lambda: calls, 5.0)
+        assert 0.85 <= calls[0] - t0 <= 1.5 and len(calls) == 1
+        t1 = time.monotonic()
+        while time.monotonic() - t1 < 4.0:  # maps that never stop: merged every min_gap_s all the same
+            m.request("map")
+            time.sleep(0.1)
+        assert 2 <= len(calls) - 1 <= 3, np.diff(calls)
+        assert calls[1] - t1 <= 1.5 + 0.5
+    finally:
+        m.stop()
+        runner.join(5)
+
+
 def test_received_maps_merge_at_most_once_per_gap_but_merge_now_at_once():
     calls = []
 
