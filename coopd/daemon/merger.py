@@ -1,9 +1,12 @@
 """The merging thread: local + received maps -> the global map and the other vehicles' offsets.
 
-Runs at low priority (nice +10), one merge at a time, triggered by a received map (on_receive),
-by the period and by `coopctl merge-now`. Received maps rest compressed in the sharing store and
-are decompressed only inside a merge, under a "merge-scratch" reservation of the memory budget;
-a merge that would not fit is deferred and reported, never half-done.
+Runs at low priority (nice +10), one merge at a time, triggered by a received map (on_receive, once
+the burst of arrivals settled), by the period and by `coopctl merge-now`. A merge whose inputs (local
+and received map versions) are those of the last merge done is skipped: merging is deterministic, it
+would rebuild the same global map (at 10 drones one merge costs the whole period and more).
+Received maps rest compressed in the sharing store and are decompressed only inside a merge, under
+a "merge-scratch" reservation of the memory budget; a merge that would not fit is deferred and
+reported, never half-done.
 
 The registration and fusion are coopd.merging.merge_all(reference, others, params) ->
 GlobalMergeResult(global_map, results per input map: accepted, transform, score, reason). In a
