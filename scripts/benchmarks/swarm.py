@@ -57,7 +57,8 @@ def host(vid: int, shared_address: bool = False) -> str:
     """The loopback address of vehicle vid."""
     return "127.0.0.1" if shared_address else f"127.0.0.{HOST_BASE + vid}"
 MERGE_COUNTERS = ("done", "failed", "deferred", "nothing_to_merge", "unchanged")
-POLL_S = 0.25
+POLL_S = 0.5
+"""Status polls of every daemon: each costs the daemon a little CPU, taken from merging."""
 STATUS_TIMEOUT_S = 10.0
 
 
@@ -72,10 +73,13 @@ def offset_errors(transform: list[float] | np.ndarray, truth: np.ndarray) -> tup
 def judge_offsets(offsets: dict, truths: dict[int, np.ndarray], tol_m: float, tol_deg: float) -> dict:
     """One daemon's status merges.offsets against the truth per peer id: accepted, correct, wrong ids
     and the errors of the accepted ones. A merge is correct within tol_m and tol_deg."""
-    out = {"accepted": [], "correct": [], "wrong": [], "errors": {}}
+    out = {"accepted": [], "correct": [], "wrong": [], "errors": {}, "refused": {}}
     for key, o in sorted(offsets.items(), key=lambda kv: int(kv[0])):
         vid = int(key)
-        if not o.get("accepted") or vid not in truths:
+        if vid not in truths:
+            continue
+        if not o.get("accepted"):
+            out["refused"][vid] = f"{o.get('reason')} (score {o.get('score')})"
             continue
         te, re = offset_errors(o["transform"], truths[vid])
         out["accepted"].append(vid)
@@ -317,7 +321,7 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
             "merging_thread_cpu_s": _delta(cpu["merging_thread"], cpu0[vid]["merging_thread"]),
             "process_cpu_s": _delta(cpu["process"], cpu0[vid]["process"]),
             "last_merge": merges.get("last"),
-            "accepted": j["accepted"], "wrong": j["wrong"], "errors": j["errors"],
+            "accepted": j["accepted"], "wrong": j["wrong"], "errors": j["errors"], "refused": j["refused"],
             "global_at_s": None if vid not in first_global else round(first_global[vid], 2),
             "peak_rss_mib": round(st["memory"]["peak_rss_bytes"] / 2**20, 1),
         })

@@ -47,7 +47,7 @@ def test_judge_offsets_tells_correct_from_wrong_merges():
     flipped = rigid(rotation_z(math.radians(90)), [0.0, 4.0, 0.0])  # 180 deg off: wrong
     st = status(1, accepted=[2, 3], refused=[4], transforms={2: near, 3: flipped})
     j = swarm.judge_offsets(st["merges"]["offsets"], {2: truth2, 3: truth3, 4: np.eye(4)}, 0.3, 3.0)
-    assert j["accepted"] == [2, 3] and j["correct"] == [2] and j["wrong"] == [3]
+    assert j["accepted"] == [2, 3] and j["correct"] == [2] and j["wrong"] == [3] and list(j["refused"]) == [4]
     te, re = j["errors"][2]
     assert abs(te - 0.1) < 1e-3 and abs(re - 1.0) < 0.01
     assert abs(j["errors"][3][1] - 180.0) < 0.01
