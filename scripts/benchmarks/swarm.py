@@ -94,6 +94,14 @@ def holds_all_maps(status: dict, ids: list[int]) -> bool:
     return set(ids) - {status["vehicle_id"]} <= held
 
 
+def gave_up(earlier: dict, later: dict, ids: list[int]) -> bool:
+    """True when a daemon holding every map, idle, merged nothing since `earlier` and skipped a merge
+    of unchanged inputs (merges.unchanged): without new maps its global map will not change."""
+    m0, m1 = earlier.get("merges", {}), later.get("merges", {})
+    return (holds_all_maps(later, ids) and m1.get("state") == "idle" and m1.get("done") == m0.get("done")
+            and m1.get("unchanged", 0) > m0.get("unchanged", 0) and m1.get("done", 0) >= 1)
+
+
 def accepted_offsets(status: dict) -> set[int]:
     """Vehicle ids this daemon's last merge accepted into its global map."""
     return {int(k) for k, o in status.get("merges", {}).get("offsets", {}).items() if o.get("accepted")}
@@ -251,11 +259,15 @@ def run_size(maps: list, merging: dict, args, label: str) -> dict:
         t_share = t_global = None
         first_global: dict[int, float] = {}
         last: dict[int, dict] = {}
+        since_merge: dict[int, dict] = {}
+        """Each daemon's first status after its last merge done (did it skip unchanged ones since?)."""
         while time.monotonic() - t0 < args.timeout:
             for vid in swarm.ids:
                 st = swarm.status(vid)
                 if st is not None:
                     last[vid] = st
+                    if since_merge.get(vid, {}).get("merges", {}).get("done") != st["merges"]["done"]:
+                        since_merge[vid] = st
             now = time.monotonic() - t0
             if len(last) == n:
                 if t_share is None and all(holds_all_maps(s, swarm.ids) for s in last.values()):
@@ -266,6 +278,9 @@ def run_size(maps: list, merging: dict, args, label: str) -> dict:
                 if t_global is None and len(first_global) == n:
                     t_global = now
             if t_share is not None and t_global is not None:
+                break
+            if len(last) == n and all(gave_up(since_merge[v], last[v], swarm.ids) for v in swarm.ids):
+                row["gave_up_at_s"] = round(now, 2)  # every daemon settled short of the global map
                 break
             time.sleep(POLL_S)
         cpu1 = {vid: swarm.cpu(vid) for vid in swarm.ids}

@@ -85,3 +85,19 @@ def test_cpu_s_reads_this_process_and_its_threads():
     main = swarm.cpu_s(f"/proc/{os.getpid()}/task/{threading.get_native_id()}/stat")
     assert whole is not None and main is not None and 0 < main <= whole + 0.02
     assert swarm.cpu_s("/proc/0/stat") is None
+
+
+def test_gave_up_needs_all_maps_idle_no_new_merge_and_an_unchanged_skip():
+    ids = [1, 2, 3]
+
+    def st(done, unchanged, state="idle", held=(2, 3)):
+        s = status(1, held=held, accepted=[2])
+        s["merges"] |= {"done": done, "unchanged": unchanged, "state": state}
+        return s
+
+    assert swarm.gave_up(st(1, 0), st(1, 1), ids)
+    assert not swarm.gave_up(st(1, 1), st(1, 1), ids)  # no skip seen yet
+    assert not swarm.gave_up(st(1, 0), st(2, 1), ids)  # merged again: may still converge
+    assert not swarm.gave_up(st(1, 0), st(1, 1, state="merging"), ids)
+    assert not swarm.gave_up(st(1, 0, held=[2]), st(1, 1, held=[2]), ids)  # a map still to come
+    assert not swarm.gave_up({"merges": {}}, {"vehicle_id": 1, "peers": [], "merges": {}}, ids)  # old daemon
