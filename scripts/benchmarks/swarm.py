@@ -17,6 +17,7 @@ Usage: scripts/bench swarm [--drones 2,4,6,8,10] [--world small_house] [--seed 1
 """
 
 import argparse
+import ctypes
 import dataclasses
 import json
 import os
@@ -124,6 +125,12 @@ def cpu_s(stat_path: str) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def die_with_parent() -> None:
+    """In a daemon's child process before exec: SIGKILL it when the bench dies, even by SIGKILL."""
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
 def toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -185,7 +192,8 @@ class Swarm:
             self.logs[vid] = open(d / "coopd.log", "wb")
             self.procs[vid] = subprocess.Popen(
                 [sys.executable, "-m", "coopd.daemon.main", "--config", str(d / "coopd.toml")],
-                stdout=self.logs[vid], stderr=subprocess.STDOUT, env=env, cwd=ROOT)
+                stdout=self.logs[vid], stderr=subprocess.STDOUT, env=env, cwd=ROOT,
+                preexec_fn=die_with_parent)
         waiting = set(self.ids)
         while waiting:
             if time.monotonic() - t0 > timeout_s:
@@ -447,7 +455,10 @@ def main():
     rows = []
     for n in sizes:
         for label, merging in modes(extra):
-            row = run_size(flight[:n], merging, args, label)
+            try:
+                row = run_size(flight[:n], merging, args, label)
+            except RuntimeError as e:  # a size whose daemons did not start: said, the others still run
+                row = {"drones": n, "mode": label, "error": str(e)[-3000:]}
             rows.append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "daemons"}), file=sys.stderr)
     result = {
