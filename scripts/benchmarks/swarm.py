@@ -381,7 +381,8 @@ def table(rows: list[dict]) -> str:
             "proc CPU", "RSS max MiB", "CPU after")
     lines = ["  ".join(f"{h:>9}" for h in head)]
     for r in rows:
-        cells = (r["drones"], r["mode"], _s(r.get("t_share_s")), _s(r.get("t_global_s")),
+        t_global = f"gave up {r['gave_up_at_s']:.0f}" if r.get("gave_up_at_s") else _s(r.get("t_global_s"))
+        cells = (r["drones"], r["mode"], _s(r.get("t_share_s")), t_global,
                  _s(r.get("t_total_s")), r.get("merges_done"),
                  f"{r.get('accepted_offsets')}/{r.get('wanted_offsets')}", r.get("wrong_merges"),
                  _s(r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")), r.get("peak_rss_mib_max"),
