@@ -1,9 +1,12 @@
 """The merging thread: local + received maps -> the global map and the other vehicles' offsets.
 
-Runs at low priority (nice +10), one merge at a time, triggered by a received map (on_receive),
-by the period and by `coopctl merge-now`. Received maps rest compressed in the sharing store and
-are decompressed only inside a merge, under a "merge-scratch" reservation of the memory budget;
-a merge that would not fit is deferred and reported, never half-done.
+Runs at low priority (nice +10), one merge at a time, triggered by a received map (on_receive, once
+the burst of arrivals settled), by the period and by `coopctl merge-now`. A merge whose inputs (local
+and received map versions) are those of the last merge done is skipped: merging is deterministic, it
+would rebuild the same global map (at 10 drones one merge costs the whole period and more).
+Received maps rest compressed in the sharing store and are decompressed only inside a merge, under
+a "merge-scratch" reservation of the memory budget; a merge that would not fit is deferred and
+reported, never half-done.
 
 The registration and fusion are coopd.merging.merge_all(reference, others, params) ->
 GlobalMergeResult(global_map, results per input map: accepted, transform, score, reason). In a
@@ -85,6 +88,8 @@ class Merger:
         distributed: bool = True,
         peer_results: Callable[[], list] | None = None,
         publish_results: Callable[[MergeResultMessage], None] | None = None,
+        local_version: Callable[[], int] | None = None,
+        settle_s: float = 0.0,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -95,7 +100,7 @@ class Merger:
         self.merge_fn = merge_fn
         self.params = params
         self.limits = limits
-        self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0,
+        self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0, "unchanged": 0,
                          "full_registrations": 0, "hinted_own": 0, "hinted_peer": 0, "hint_rejected": 0}
         self.cpu_s = 0.0
         """CPU time of the merging thread inside merges (time.thread_time): the work the bench sums."""
@@ -106,6 +111,10 @@ class Merger:
         self._accepted: dict[int, np.ndarray] = {}
         """Vehicle id -> last accepted transform of its map frame into ours (the own hints)."""
         self._result_version = 0
+        self.local_version = local_version
+        """The local map's version without copying it; given, a merge whose inputs (this and every
+        received map's version) equal those of the last merge done is skipped, counted "unchanged"."""
+        self._merged_inputs: tuple | None = None
         self.last: dict | None = None
         self.offsets: dict[int, dict] = {}
         self._global: tuple[OccupancyGrid, MapMeta] | None = None
@@ -114,6 +123,11 @@ class Merger:
         self._urgent = False
         self.min_gap_s = min_gap_s
         """Received maps trigger a merge at most this often (a peer publishes every second)."""
+        self.settle_s = settle_s
+        """A requested merge waits until no request came for this long (the maps of a sharing burst
+        merge together, not the first one alone), but at most max(settle_s, min_gap_s)."""
+        self._pending_since: float | None = None
+        self._last_request_at = 0.0
         self._completed = 0
         self._reasons: list[str] = []
         self._stop = threading.Event()
@@ -129,6 +143,9 @@ class Merger:
         with self._cv:
             self._requested += 1
             self._urgent |= urgent
+            self._last_request_at = time.monotonic()
+            if self._pending_since is None:
+                self._pending_since = self._last_request_at
             if len(self._reasons) < 16:
                 self._reasons.append(reason)
             self._cv.notify_all()
@@ -154,7 +171,8 @@ class Merger:
 
     # ----------------------------------------------------------------------------------- loop
     def run(self) -> None:
-        """Merge every period_s, on request (at most one merge per min_gap_s), at once for merge-now."""
+        """Merge every period_s, on request (settled, at most one merge per min_gap_s), at once for
+        merge-now; skip a merge whose inputs are those of the last one done."""
         next_periodic = time.monotonic() + self.period_s
         not_before = 0.0
         while not self._stop.is_set():
@@ -162,23 +180,48 @@ class Merger:
                 while not self._stop.is_set():
                     now = time.monotonic()
                     pending = self._requested > self._completed
-                    if self._urgent or (pending and now >= not_before) or now >= next_periodic:
+                    due = max(not_before, self._settled_at()) if pending else next_periodic
+                    if self._urgent or now >= due or now >= next_periodic:
                         break
-                    wake = min(next_periodic, not_before) if pending else next_periodic
-                    self._cv.wait(max(0.0, wake - now))
+                    self._cv.wait(max(0.0, min(due, next_periodic) - now))
                 if self._stop.is_set():
                     return
                 ticket = self._requested
-                self._urgent = False
+                self._pending_since = None
+                urgent, self._urgent = self._urgent, False
                 reasons, self._reasons = self._reasons or ["period"], []
             if time.monotonic() >= next_periodic:
                 next_periodic = time.monotonic() + self.period_s
             if self.enabled and self.available:
-                self.merge_once(",".join(sorted(set(reasons))))
-                not_before = time.monotonic() + self.min_gap_s
+                inputs = self.inputs()
+                if not urgent and inputs is not None and inputs == self._merged_inputs:
+                    self.counters["unchanged"] += 1  # merging is deterministic: the same global map again
+                else:
+                    if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
+                        self._merged_inputs = inputs
+                    not_before = time.monotonic() + self.min_gap_s
             with self._cv:
                 self._completed = max(self._completed, ticket)
                 self._cv.notify_all()
+
+    def _settled_at(self) -> float:
+        """When the pending requests have settled: settle_s after the last one, capped after the first."""
+        if self._pending_since is None:
+            return 0.0
+        cap = self._pending_since + max(self.settle_s, self.min_gap_s)
+        return min(self._last_request_at + self.settle_s, cap)
+
+    def inputs(self) -> tuple | None:
+        """(local version, (vehicle id, version) of every received map, and of every peer's merge
+        results when distributed: a new result may merge a map the last merge refused); None
+        without local_version."""
+        if self.local_version is None:
+            return None
+        results = ()
+        if self.distributed and self.peer_results is not None:
+            results = tuple(sorted((r.vehicle_id, r.version) for r in self.peer_results()))
+        return (self.local_version(), tuple(sorted((m.vehicle_id, m.version) for m in self.received_maps())),
+                results)
 
     def merge_once(self, reason: str = "request") -> dict:
         """One merge of the local map with every received map; returns and records the outcome."""

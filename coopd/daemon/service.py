@@ -71,7 +71,9 @@ SNAPSHOT_PAD_CELLS = 4
 """Unknown cells kept around the known box of a snapshot (room for the merge's filters)."""
 MERGE_NOW_TIMEOUT_S = 100.0
 MERGE_MIN_GAP_S = 5.0
-"""Maps arriving faster than this (peers publish every second) are merged together, not one by one."""
+"""Maps arriving faster than this (peers publish every second) are merged together, not one by one.
+A received map also waits until no other arrived for one discovery scan period (the peers found in a
+scan deliver within it), so the maps of a swarm's first exchange merge in one go (Merger.settle_s)."""
 SHUTDOWN_JOIN_S = 2.0
 FROM_BUILD = "from-build"
 """Daemon(merge_fn=FROM_BUILD): coopd.merging.merge_all if this build has it (None: not available)."""
@@ -139,6 +141,13 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
     )
 
 
+def save_map_frame(state_dir, vehicle_id: int, origin_fc_enu) -> None:
+    """Write FRAME_FILE atomically: where the local map's frame sits in the FC's local frame, read
+    back on start with the local checkpoint (tools that prepare a state dir write it the same way)."""
+    data = json.dumps({"vehicle_id": vehicle_id, "origin_fc_enu": [float(v) for v in origin_fc_enu]})
+    write_atomic(Path(state_dir) / FRAME_FILE, data.encode())
+
+
 # ------------------------------------------------------------------------------------ the daemon
 class Daemon:
     """One vehicle's coopd: the stages, their threads, persistence, control and health."""
@@ -189,6 +198,8 @@ class Daemon:
             distributed=config.merging.distributed,
             peer_results=self._peer_results,
             publish_results=self._publish_results,
+            local_version=lambda: self.mapper.version,
+            settle_s=min(config.sharing.scan_period_s, MERGE_MIN_GAP_S),
         )
         self.control = ControlServer(
             config.daemon.control_socket,
@@ -299,9 +310,8 @@ class Daemon:
         origin = self.link.odometry.origin_enu
         if origin is None or self._origin_saved:
             return
-        data = json.dumps({"vehicle_id": self.vehicle_id, "origin_fc_enu": [float(v) for v in origin]})
         try:
-            write_atomic(self.state_dir / FRAME_FILE, data.encode())
+            save_map_frame(self.state_dir, self.vehicle_id, origin)
         except OSError as e:
             log.error("cannot save the map frame to %s: %s", self.state_dir / FRAME_FILE, e)
             return

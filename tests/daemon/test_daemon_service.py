@@ -21,7 +21,7 @@ from coopd.daemon.config import from_dict
 from coopd.daemon.main import main
 from coopd.daemon.merger import NOT_AVAILABLE, Merger
 from coopd.daemon.notify import Notifier
-from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, StartupError
+from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, StartupError, save_map_frame
 from coopd.geometry import rigid, rotation_z
 from coopd.grid import OccupancyGrid, fuse_transformed
 from coopd.sharing.wire import MapMeta, decode_map, encode_map
@@ -193,7 +193,7 @@ def test_resume_from_checkpoint_keeps_version_cells_and_map_frame(wd):
     grid = _box_grid()
     store.save("local", grid, MapMeta(1, 41))
     store.save("local", grid, MapMeta(1, 42))
-    (wd / "state" / FRAME_FILE).write_text(json.dumps({"vehicle_id": 1, "origin_fc_enu": [1.5, -2.0, 0.25]}))
+    save_map_frame(wd / "state", 1, [1.5, -2.0, 0.25])
     newest = store.generations("local")[0][1]
     newest.write_bytes(newest.read_bytes()[:-7])  # torn: the older generation is loaded
     d = Daemon(cfg)
@@ -235,7 +235,7 @@ def test_merger_fuses_accepted_maps_with_their_transform_and_defers_over_budget(
     other.set_keys(np.array([[0, -5, 3]]), 100)  # a cell only vehicle 5 knows
     calls = []
 
-    def merge_all(reference, others, params):
+    def merge_all(reference, others, params, hints=None):
         """What coopd.merging.merge_all returns: the fused global map and one result per input map,
         here with the answer known in advance (vehicle 5 at t, vehicle 6 not overlapping)."""
         calls.append(len(others))
@@ -290,10 +290,71 @@ def test_merger_thread_merges_on_request_and_reports_failures():
     assert not runner.is_alive()
 
 
+def test_unchanged_inputs_are_not_merged_again_but_new_versions_and_merge_now_are():
+    calls = []
+
+    def merge_all(reference, others, params, hints=None):
+        calls.append(len(others))
+        return SimpleNamespace(global_map=reference.copy(), rounds=1, results=[
+            SimpleNamespace(accepted=True, transform=np.eye(4), score=1.0, reason="test") for _ in others])
+
+    received = [_stored(2, _box_grid())]
+    local = {"version": 3}
+    budget = MemoryBudget(64 << 20, baseline_bytes=0)
+    m = Merger(1, lambda: (_box_grid(), local["version"]), lambda: list(received), budget, period_s=0.2,
+               merge_fn=merge_all, local_version=lambda: local["version"])
+    runner = threading.Thread(target=m.run, daemon=True)
+    runner.start()
+    try:
+        assert wait_until(lambda: m.counters["unchanged"] >= 3, 5.0)  # periods and requests, one merge
+        m.request("map of vehicle 2 v1")
+        assert wait_until(lambda: m.counters["unchanged"] >= 4, 5.0) and calls == [1]
+        received.append(_stored(3, _box_grid(), version=4))  # a new peer map: merged
+        assert wait_until(lambda: len(calls) == 2, 5.0) and calls == [1, 2]
+        local["version"] = 4  # the local map changed: merged
+        assert wait_until(lambda: len(calls) == 3, 5.0)
+        assert m.merge_now(10)["outcome"] == "done" and len(calls) == 4  # the operator asked: always
+        assert m.status()["done"] == 4 and m.status()["unchanged"] >= 4
+    finally:
+        m.stop()
+        runner.join(5)
+
+
+def test_received_maps_merge_once_settled_and_at_most_a_gap_after_the_first():
+    calls = []
+
+    def merge_all(reference, others, params, hints=None):
+        calls.append(time.monotonic())
+        return SimpleNamespace(global_map=reference.copy(), rounds=1, results=[
+            SimpleNamespace(accepted=True, transform=np.eye(4), score=1.0, reason="test") for _ in others])
+
+    budget = MemoryBudget(64 << 20, baseline_bytes=0)
+    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=3600,
+               merge_fn=merge_all, min_gap_s=1.5, settle_s=0.5)
+    runner = threading.Thread(target=m.run, daemon=True)
+    runner.start()
+    try:
+        t0 = time.monotonic()
+        for _ in range(3):  # a burst of maps: one merge, settle_s after the last
+            m.request("map")
+            time.sleep(0.2)
+        assert wait_until(lambda: calls, 5.0)
+        assert 0.85 <= calls[0] - t0 <= 1.5 and len(calls) == 1
+        t1 = time.monotonic()
+        while time.monotonic() - t1 < 4.0:  # maps that never stop: merged every min_gap_s all the same
+            m.request("map")
+            time.sleep(0.1)
+        assert 2 <= len(calls) - 1 <= 3, np.diff(calls)
+        assert calls[1] - t1 <= 1.5 + 0.5
+    finally:
+        m.stop()
+        runner.join(5)
+
+
 def test_received_maps_merge_at_most_once_per_gap_but_merge_now_at_once():
     calls = []
 
-    def merge_all(reference, others, params):
+    def merge_all(reference, others, params, hints=None):
         calls.append(time.monotonic())
         return SimpleNamespace(global_map=reference.copy(), rounds=1, results=[
             SimpleNamespace(accepted=False, transform=np.eye(4), score=0.0, reason="test")])

@@ -1,0 +1,103 @@
+"""scripts/benchmarks/swarm.py: its pure parts (convergence checks, offsets against the truth, TOML)."""
+
+import importlib.util
+import math
+import os
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from coopd.daemon.merger import offset_summary
+from coopd.geometry import rigid, rotation_z
+
+ROOT = Path(__file__).resolve().parents[2]
+spec = importlib.util.spec_from_file_location("bench_swarm", ROOT / "scripts" / "benchmarks" / "swarm.py")
+swarm = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(swarm)
+
+
+def status(vid, held=(), accepted=(), refused=(), transforms=None):
+    """A daemon status reduced to what the checks read."""
+    transforms = transforms or {}
+    offsets = {str(v): {"accepted": True, **offset_summary(transforms.get(v, np.eye(4)))} for v in accepted}
+    offsets |= {str(v): {"accepted": False, **offset_summary(np.eye(4))} for v in refused}
+    peers = [{"vehicle_id": v, "map_version": 1} for v in held] + [{"vehicle_id": 99, "map_version": None}]
+    return {"vehicle_id": vid, "peers": peers, "merges": {"offsets": offsets}}
+
+
+def test_holds_all_maps_needs_every_other_vehicle():
+    ids = [1, 2, 3]
+    assert swarm.holds_all_maps(status(1, held=[2, 3]), ids)
+    assert not swarm.holds_all_maps(status(1, held=[2]), ids)
+    assert swarm.holds_all_maps(status(2, held=[1, 3, 7]), ids)
+
+
+def test_holds_global_counts_only_accepted_offsets():
+    ids = [1, 2, 3]
+    assert swarm.holds_global(status(1, accepted=[2, 3]), ids)
+    assert not swarm.holds_global(status(1, accepted=[2], refused=[3]), ids)
+    assert swarm.accepted_offsets(status(3, accepted=[1], refused=[2])) == {1}
+
+
+def test_judge_offsets_tells_correct_from_wrong_merges():
+    truth2 = rigid(rotation_z(math.radians(30)), [2.0, -1.0, 0.5])
+    truth3 = rigid(rotation_z(math.radians(-90)), [0.0, 4.0, 0.0])
+    near = rigid(rotation_z(math.radians(31)), [2.1, -1.0, 0.5])  # 0.1 m, 1 deg off: correct
+    flipped = rigid(rotation_z(math.radians(90)), [0.0, 4.0, 0.0])  # 180 deg off: wrong
+    st = status(1, accepted=[2, 3], refused=[4], transforms={2: near, 3: flipped})
+    j = swarm.judge_offsets(st["merges"]["offsets"], {2: truth2, 3: truth3, 4: np.eye(4)}, 0.3, 3.0)
+    assert j["accepted"] == [2, 3] and j["correct"] == [2] and j["wrong"] == [3] and list(j["refused"]) == [4]
+    te, re = j["errors"][2]
+    assert abs(te - 0.1) < 1e-3 and abs(re - 1.0) < 0.01
+    assert abs(j["errors"][3][1] - 180.0) < 0.01
+
+
+def test_offset_errors_reads_the_status_transform_row_major():
+    t = rigid(rotation_z(0.2), [1.0, 2.0, 3.0])
+    assert max(swarm.offset_errors(offset_summary(t)["transform"], t)) < 1e-4
+    te, _ = swarm.offset_errors(offset_summary(t)["transform"], t.T)  # transposed: translation lost
+    assert te > 1.0
+
+
+def test_toml_round_trips_a_daemon_config():
+    table = {"vehicle": {"id": 3, "mavlink": "udpin:127.0.0.1:18503"},
+             "sharing": {"port": 18003, "peers": ["127.0.0.1:18001", "127.0.0.1:18002"]},
+             "merging": {"distributed": True, "period_s": 10.0}}
+    assert tomllib.loads(swarm.toml(table)) == table
+
+
+def test_comparisons_are_distributed_over_central():
+    rows = [{"drones": 4, "mode": "central", "merge_cpu_s": None, "merging_thread_cpu_s": 40.0,
+             "t_global_s": 20.0},
+            {"drones": 4, "mode": "distributed", "merge_cpu_s": None, "merging_thread_cpu_s": 10.0,
+             "t_global_s": 8.0}]
+    assert swarm.comparisons(rows) == [{"drones": 4, "cpu": "merging_thread_cpu_s", "merge_cpu_ratio": 0.25,
+                                        "t_global_ratio": 0.4}]
+
+
+def test_cpu_s_reads_this_process_and_its_threads():
+    import threading
+
+    busy = sum(i * i for i in range(300_000))  # some CPU of our own
+    assert busy > 0
+    whole = swarm.cpu_s(f"/proc/{os.getpid()}/stat")
+    main = swarm.cpu_s(f"/proc/{os.getpid()}/task/{threading.get_native_id()}/stat")
+    assert whole is not None and main is not None and 0 < main <= whole + 0.02
+    assert swarm.cpu_s("/proc/0/stat") is None
+
+
+def test_gave_up_needs_all_maps_idle_no_new_merge_and_an_unchanged_skip():
+    ids = [1, 2, 3]
+
+    def st(done, unchanged, state="idle", held=(2, 3)):
+        s = status(1, held=held, accepted=[2])
+        s["merges"] |= {"done": done, "unchanged": unchanged, "state": state}
+        return s
+
+    assert swarm.gave_up(st(1, 0), st(1, 1), ids)
+    assert not swarm.gave_up(st(1, 1), st(1, 1), ids)  # no skip seen yet
+    assert not swarm.gave_up(st(1, 0), st(2, 1), ids)  # merged again: may still converge
+    assert not swarm.gave_up(st(1, 0), st(1, 1, state="merging"), ids)
+    assert not swarm.gave_up(st(1, 0, held=[2]), st(1, 1, held=[2]), ids)  # a map still to come
+    assert not swarm.gave_up({"merges": {}}, {"vehicle_id": 1, "peers": [], "merges": {}}, ids)  # old daemon
