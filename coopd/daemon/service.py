@@ -28,7 +28,7 @@ import numpy as np
 
 from coopd.camera import LatestSlot, RealSenseSource, SocketDepthSource, SocketSourceConfig
 from coopd.daemon.budget import MemoryBudget
-from coopd.daemon.checkpoint import CheckpointStore, VersionReserve
+from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
 from coopd.daemon.control import BlobReply, CommandFailed, ControlServer
 from coopd.daemon.merger import Merger, find_merge_all
@@ -373,11 +373,12 @@ class Daemon:
         log.info("kernels ready in %.1f s", time.monotonic() - t0)
 
     def _remove_stray_temp_files(self) -> None:
-        for p in self.state_dir.glob(f".{FRAME_FILE}.*.tmp"):
-            try:
-                p.unlink()
-            except OSError:
-                pass
+        for name in (FRAME_FILE, VERSION_FILE):
+            for p in self.state_dir.glob(f".{name}.*.tmp"):
+                try:
+                    p.unlink()
+                except OSError:
+                    pass
 
     def request_stop(self, reason: str) -> None:
         """Ask run() to return (signal handlers call this; it only sets an event)."""
