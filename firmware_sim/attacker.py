@@ -22,6 +22,8 @@ MAX_SECONDS = 600.0
 MAX_CONNECTIONS = 2000
 SLOWLORIS_PER_TARGET = 3
 TRICKLE_PERIOD_S = 0.5
+HANGUP_S = 5.0
+"""A one-shot connection the server has not closed this long after our bytes counts as left open."""
 
 
 class Attacker:
@@ -51,20 +53,20 @@ class Attacker:
             return None
         self.connections += 1
         try:
-            return socket.create_connection(target, timeout=2)
+            return socket.create_connection(target, timeout=HANGUP_S)
         except OSError:
             self.refused += 1
             return None
 
     def _one_shot(self, target, payload: bytes) -> None:
-        """Send payload on a fresh connection and see whether the server hangs up within 2 s."""
+        """Send payload on a fresh connection and see whether the server hangs up within HANGUP_S."""
         s = self._connect(target)
         if s is None:
             return
         try:
             s.sendall(payload)
             self.sent_bytes += len(payload)
-            deadline = time.monotonic() + 2.0
+            deadline = time.monotonic() + HANGUP_S
             while time.monotonic() < deadline:
                 if s.recv(65536) == b"":
                     self.closed_by_server += 1

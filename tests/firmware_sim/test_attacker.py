@@ -6,7 +6,7 @@ import time
 
 from coopd.sharing.service import SharingConfig, SharingService
 from coopd.sharing.transport import TransportSettings
-from firmware_sim.attacker import Attacker, main
+from firmware_sim.attacker import HANGUP_S, Attacker, main
 
 
 def test_attacker_is_cut_off_and_bounded():
@@ -21,7 +21,7 @@ def test_attacker_is_cut_off_and_bounded():
         stats = svc.stats()
     finally:
         svc.stop()
-    assert summary["connections"] <= 60 and took < 4.0 + 3 * 2.0 + 2.0  # bounded in count and time
+    assert summary["connections"] <= 60 and took < 4.0 + 3 * HANGUP_S + 2.0  # bounded in count and time
     assert summary["rounds"] >= 1 and summary["closed_by_server"] >= 3 and summary["left_open"] == 0, summary
     assert summary["slowloris_cut"] >= 1, summary  # trickling connections are cut, not kept
     assert stats["received_maps"] == {} and stats["inflight_bytes"] == 0
