@@ -5,8 +5,11 @@ unavailable (not root, no iproute2). Only addresses this module creates are ever
     lab = NetnsLab("coopd-demo", "10.214.1"); addr = lab.add_host(1); lab.attach_root()
     subprocess.Popen(lab.command(1, ["coopd", ...])); lab.link(1, up=False); lab.cleanup()
 
-Namespace names carry the creating process id, so namespaces left behind by a process that was
-killed -9 are found and removed by `remove_stale()`.
+Each host can also get a wired point-to-point cable to the root namespace (`add_fc_link`): a
+drone's flight controller is wired to it, so its MAVLink must survive a radio cut and vice versa.
+
+Namespace and root-side cable names carry the creating process id, so what a process killed -9
+left behind is found and removed by `remove_stale()`.
 """
 
 import os
@@ -16,6 +19,10 @@ import subprocess
 
 ROOT_HOST = 254
 """Host number of the root namespace's own address on the bridge (the simulator's side)."""
+FC_LINK_PREFIX = "cfc"
+"""Root-side FC cable names: cfc<pid><lab letter><host> (at most 14 characters)."""
+MAX_FC_HOSTS = 63
+"""FC cables are /30s inside one /24: host i uses .4i+1 (root side) and .4i+2 (drone side)."""
 
 
 def _ip(*args, check=True) -> subprocess.CompletedProcess:
@@ -42,7 +49,8 @@ def netns_unavailable_reason() -> str | None:
 
 
 def remove_stale(tag: str) -> list[str]:
-    """Delete namespaces named <tag>-<pid>-... whose creating process is gone; returns their names."""
+    """Delete namespaces named <tag>-<pid>-... and root-side FC cables cfc<pid>... whose creating
+    process is gone; returns their names."""
     try:
         listing = _ip("netns", "list", check=False).stdout
     except (OSError, subprocess.SubprocessError):
@@ -54,22 +62,48 @@ def remove_stale(tag: str) -> list[str]:
         if m and not os.path.exists(f"/proc/{m.group(1)}"):
             _ip("netns", "del", name, check=False)
             removed.append(name)
+    return removed + remove_stale_fc_links()
+
+
+def remove_stale_fc_links() -> list[str]:
+    """Delete root-side FC cables whose creating process is gone (deleting a namespace already
+    takes its veth pair along; this catches a cable whose namespace was removed some other way)."""
+    try:
+        links = _ip("-o", "link", "show", check=False).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    removed = []
+    for line in links.splitlines():
+        parts = line.split(":")
+        if len(parts) < 2:
+            continue
+        name = parts[1].strip().split("@")[0]
+        m = re.fullmatch(rf"{FC_LINK_PREFIX}(\d+)[a-z]\d+", name)
+        if m and not os.path.exists(f"/proc/{m.group(1)}"):
+            _ip("link", "del", name, check=False)
+            removed.append(name)
     return removed
 
 
 class NetnsLab:
     """Namespaces <tag>-<pid>-<n>-{sw,h1,h2,...}: hosts on one bridge in the switch namespace,
-    host i at <subnet>.i on its eth0; removed by cleanup()."""
+    host i at <subnet>.i on its eth0, optionally wired to the root namespace by an FC cable
+    (<fc_subnet>.4i+1 root side, .4i+2 on the host's fc0); removed by cleanup()."""
 
     mode = "netns"
+    _serial = 0
 
-    def __init__(self, tag: str = "coopdt", subnet: str = "10.213.1"):
+    def __init__(self, tag: str = "coopdt", subnet: str = "10.213.1", fc_subnet: str = "10.215.1"):
         self.subnet = subnet
+        self.fc_subnet = fc_subnet
         self.prefix = f"{tag}-{os.getpid()}-{id(self) % 100000}"
+        NetnsLab._serial += 1
+        self.letter = "abcdefghijklmnopqrstuvwxyz"[NetnsLab._serial % 26]
         self.switch = f"{self.prefix}-sw"
         self.namespaces: list[str] = []
         self.hosts: dict[int, str] = {}
         self.root_link: str | None = None
+        self.fc_links: dict[int, str] = {}
         _ip("netns", "add", self.switch)
         self.namespaces.append(self.switch)
         _ip("-n", self.switch, "link", "add", "br0", "type", "bridge")
@@ -101,6 +135,25 @@ class NetnsLab:
         _ip("link", "set", name, "up")
         return self.address(ROOT_HOST)
 
+    def add_fc_link(self, i: int) -> tuple[str, str]:
+        """Wire host i to the root namespace point-to-point (its flight controller's cable, apart
+        from the radio bridge); returns (root-side address, host-side address)."""
+        if not 1 <= i <= MAX_FC_HOSTS:
+            raise ValueError(f"FC cables exist for hosts 1..{MAX_FC_HOSTS}, not {i}")
+        name = f"{FC_LINK_PREFIX}{os.getpid()}{self.letter}{i}"
+        _ip("link", "add", name, "type", "veth", "peer", "name", "fc0", "netns", self.hosts[i])
+        self.fc_links[i] = name
+        root_addr, host_addr = self.fc_addresses(i)
+        _ip("addr", "add", f"{root_addr}/30", "dev", name)
+        _ip("link", "set", name, "up")
+        _ip("-n", self.hosts[i], "addr", "add", f"{host_addr}/30", "dev", "fc0")
+        _ip("-n", self.hosts[i], "link", "set", "fc0", "up")
+        return root_addr, host_addr
+
+    def fc_addresses(self, i: int) -> tuple[str, str]:
+        """(root side, host side) addresses of host i's FC cable."""
+        return f"{self.fc_subnet}.{4 * i + 1}", f"{self.fc_subnet}.{4 * i + 2}"
+
     def address(self, i: int) -> str:
         return f"{self.subnet}.{i}"
 
@@ -112,8 +165,12 @@ class NetnsLab:
         return ["ip", "netns", "exec", self.hosts[i], *argv]
 
     def link(self, i: int, up: bool) -> None:
-        """Cut or restore host i's cable (its port on the switch)."""
+        """Cut or restore host i's radio (its port on the switch)."""
         _ip("-n", self.switch, "link", "set", f"p{i}", "up" if up else "down")
+
+    def fc_link(self, i: int, up: bool) -> None:
+        """Cut or restore host i's FC cable (its end inside the host, like a loose connector)."""
+        _ip("-n", self.hosts[i], "link", "set", "fc0", "up" if up else "down")
 
     def shape(self, i: int, rate: str, burst: str = "32kb", latency: str = "50ms") -> None:
         """tc tbf on host i's egress (eth0) and on its switch port (traffic towards host i)."""
@@ -122,11 +179,20 @@ class NetnsLab:
                             "rate", rate, "burst", burst, "latency", latency],
                            check=True, capture_output=True, timeout=10)
 
+    def unshape(self, i: int) -> None:
+        """Remove shape()'s limits from host i's links (no error if there were none)."""
+        for ns, dev in ((self.hosts[i], "eth0"), (self.switch, f"p{i}")):
+            subprocess.run(["ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", dev, "root"],
+                           capture_output=True, timeout=10)
+
     def cleanup(self) -> None:
         """Remove every namespace and cable this lab made (idempotent)."""
         if self.root_link is not None:
             _ip("link", "del", self.root_link, check=False)
             self.root_link = None
+        for name in self.fc_links.values():
+            _ip("link", "del", name, check=False)
+        self.fc_links.clear()
         for ns in reversed(self.namespaces):
             _ip("netns", "del", ns, check=False)
         self.namespaces.clear()
@@ -159,7 +225,13 @@ class LoopbackLab:
     def command(self, i: int, argv: list[str]) -> list[str]:
         return argv
 
+    def add_fc_link(self, i: int) -> tuple[str, str]:
+        raise RuntimeError("a separate FC cable needs network namespaces (root and iproute2)")
+
     def link(self, i: int, up: bool) -> None:
+        raise RuntimeError("cutting a link needs network namespaces (root and iproute2)")
+
+    def fc_link(self, i: int, up: bool) -> None:
         raise RuntimeError("cutting a link needs network namespaces (root and iproute2)")
 
     def cleanup(self) -> None:

@@ -74,6 +74,10 @@ class Vehicle:
         default_factory=list
     )
     camera_path: str | None = None
+    camera_stalled_until: float = 0.0
+    """Wall-clock (monotonic) time until which the camera publishes nothing (a stall fault)."""
+    frames_withheld: int = 0
+    """Frames the camera took but did not publish because it was stalled."""
 
     sim: Simulation | None = field(default=None, repr=False)
 
@@ -112,7 +116,7 @@ class Simulation:
         mavlink: bool = True,
         mavlink_base_port: int = 14540,
         mavlink_hosts: list[str] | None = None,
-        mavlink_bind_host: str = "127.0.0.1",
+        mavlink_bind_host: str | list[str] = "127.0.0.1",
         camera_dir: str | None = None,
         camera_tcp_base_port: int | None = None,
         route: str | None = None,
@@ -176,6 +180,8 @@ class Simulation:
             self.vehicles.append(v)
         if mavlink_hosts is not None and len(mavlink_hosts) != n_vehicles:
             raise ValueError("need one MAVLink host per vehicle")
+        if not isinstance(mavlink_bind_host, str) and len(mavlink_bind_host) != n_vehicles:
+            raise ValueError("mavlink_bind_host is one address, or one per vehicle")
         self._setup_io(mavlink, mavlink_base_port, mavlink_hosts, mavlink_bind_host, camera_dir,
                        camera_tcp_base_port)
         self._record_all()
@@ -186,16 +192,17 @@ class Simulation:
 
     # ------------------------------------------------------------------ wiring
 
-    def _setup_io(self, mavlink: bool, base_port: int, hosts: list[str] | None, bind_host: str,
+    def _setup_io(self, mavlink: bool, base_port: int, hosts: list[str] | None, bind_host: str | list[str],
                   camera_dir: str | None, tcp_base: int | None) -> None:
-        """Open each vehicle's MAVLink endpoint (bound on bind_host, sending to hosts[i]:base_port+i,
-        default loopback) and camera publisher."""
+        """Open each vehicle's MAVLink endpoint (bound on bind_host, or bind_host[i] when each vehicle
+        has its own wire, sending to hosts[i]:base_port+i, default loopback) and camera publisher."""
         if mavlink:
             from firmware_sim.mavlink_link import MavlinkLink
 
             for v in self.vehicles:
                 host = "127.0.0.1" if hosts is None else hosts[v.index]
-                v.link = MavlinkLink(self, v, (host, base_port + v.index), bind_host=bind_host)
+                bind = bind_host if isinstance(bind_host, str) else bind_host[v.index]
+                v.link = MavlinkLink(self, v, (host, base_port + v.index), bind_host=bind)
         if camera_dir is not None:
             os.makedirs(camera_dir, exist_ok=True)
         for v in self.vehicles:
@@ -302,10 +309,24 @@ class Simulation:
             if v.link is not None:
                 v.link.on_sim_step(self.time)
 
+    def stall_camera(self, i: int, seconds: float) -> None:
+        """Fault injection: vehicle i's camera publishes nothing for the next `seconds` wall seconds
+        (the sensor hangs; its sequence numbers keep counting, so the gap shows as lost frames)."""
+        if not 0 <= seconds <= 3600:
+            raise ValueError("a camera stall lasts 0..3600 s")
+        self.vehicles[i].camera_stalled_until = time.monotonic() + seconds
+
+    def camera_stalled(self, i: int) -> bool:
+        """True while vehicle i's camera is stalled by stall_camera()."""
+        return time.monotonic() < self.vehicles[i].camera_stalled_until
+
     def _capture(self, v: Vehicle) -> None:
         """Take a depth frame now: rendered inline, or queued for the render thread in real-time mode."""
         seq, t_us = v.camera_seq, int(round(self.time * 1e6))
         v.camera_seq += 1
+        if v.camera_stalled_until and time.monotonic() < v.camera_stalled_until:
+            v.frames_withheld += 1
+            return
         if self.frame_sink is None and (v.publisher is None or not v.publisher.clients):
             return  # nobody listens: skip the rays, keep the frame counter
         if self._render_thread is None:

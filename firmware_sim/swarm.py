@@ -6,7 +6,8 @@ else loopback addresses). Used by scripts/demo, the swarm benchmark and the swar
         swarm.start(); swarm.fly(); swarm.wait_landed(); swarm.merge_until_converged()
 
 Drone i (0-based) is vehicle id i+1 and host i+1 on the swarm network; its MAVLink arrives from
-the simulator on <host>:<mavlink_base+i>, its camera on a unix socket in the work directory,
+the simulator on <mavlink_address(i)>:<mavlink_base+i> (in netns mode over the drone's own wired
+FC cable, not the radio, so either can be cut alone), its camera on a unix socket in the work directory,
 its map server listens on <host>:<sharing_port>, and peers are found by scanning the swarm's
 address range. stop() (also on Ctrl-C, and idempotent) kills every process and removes every
 namespace and file it made.
@@ -52,6 +53,8 @@ class SwarmSettings:
     """'netns', 'loopback', or 'auto' (netns when available)."""
     subnet: str = "10.214.1"
     """Swarm network in netns mode (addresses exist only inside the namespaces)."""
+    fc_subnet: str = "10.215.1"
+    """The /24 the drones' FC cables take their /30s from in netns mode (root side .4i+1)."""
     mavlink_base: int = 14740
     sharing_port: int = 17400
     memory_mb: int = 768
@@ -59,6 +62,8 @@ class SwarmSettings:
     checkpoint_period_s: float = 30.0
     swarm_key: bytes | None = None
     """Shared swarm key (written to a key file for every daemon); None: no key."""
+    drone_keys: dict = field(default_factory=dict)
+    """Per-drone key overrides {drone index: key bytes}, e.g. one drone with the wrong swarm key."""
     config: dict = field(default_factory=dict)
     """Extra coopd.toml settings: {section: {key: value}}, e.g. {"merging": {"distributed": False}}."""
     noise: str = "default"
@@ -101,6 +106,8 @@ class Daemon:
         self.log_path = self.dir / "coopd.log"
         self.proc: subprocess.Popen | None = None
         self.starts = 0
+        self.killed = False
+        """Stopped on purpose by kill_daemon (until restarted): check_alive does not complain."""
 
     def running(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -139,6 +146,8 @@ class Swarm:
         self.sim: Simulation | None = None
         self.lab: NetnsLab | LoopbackLab | None = None
         self.world = build_world(settings.world, settings.seed)
+        self.hostiles: list[subprocess.Popen] = []
+        self.mounts: list[Path] = []
         self._stopped = False
 
     # ------------------------------------------------------------------------------ set-up
@@ -155,12 +164,24 @@ class Swarm:
             stale = remove_stale(NETNS_TAG)
             if stale:
                 self.say(f"swarm: removed {len(stale)} namespaces left by a killed run")
-            return NetnsLab(NETNS_TAG, s.subnet)
+            return NetnsLab(NETNS_TAG, s.subnet, s.fc_subnet)
         return LoopbackLab(NETNS_TAG)
 
     def address(self, i: int) -> str:
         """Drone i's address on the swarm network."""
         return self.lab.address(i + 1)
+
+    def mavlink_address(self, i: int) -> str:
+        """Where drone i's coopd receives MAVLink: its end of the FC cable (netns), else its address."""
+        if self.network_mode == "netns":
+            return self.lab.fc_addresses(i + 1)[1]
+        return self.address(i)
+
+    def key_file(self, i: int) -> Path | None:
+        """Drone i's swarm key file (its override, else the shared key), or None without a key."""
+        if i in self.settings.drone_keys:
+            return self.workdir / f"swarm-d{i + 1}.key"
+        return None if self.settings.swarm_key is None else self.workdir / "swarm.key"
 
     def start(self, wait: bool = True) -> None:
         """Network, simulation (drones idle on the ground), then the daemons: the first alone, so
@@ -170,13 +191,16 @@ class Swarm:
         for i in range(s.drones):
             self.lab.add_host(i + 1)
         sim_host = self.lab.attach_root()
-        if s.swarm_key is not None:
-            key_file = self.workdir / "swarm.key"
-            key_file.write_bytes(s.swarm_key)
-            key_file.chmod(0o600)
+        if self.network_mode == "netns":
+            sim_host = [self.lab.add_fc_link(i + 1)[0] for i in range(s.drones)]
+        for i in range(s.drones):
+            key_file = self.key_file(i)
+            if key_file is not None and not key_file.exists():
+                key_file.write_bytes(s.drone_keys.get(i, s.swarm_key))
+                key_file.chmod(0o600)
         self.sim = Simulation(self.world, s.drones, seed=s.seed, speed=s.speed, noise=s.noise,
                               mavlink_base_port=s.mavlink_base,
-                              mavlink_hosts=[self.address(i) for i in range(s.drones)],
+                              mavlink_hosts=[self.mavlink_address(i) for i in range(s.drones)],
                               mavlink_bind_host=sim_host, camera_dir=str(self.workdir))
         self.sim.start()
         self.start_daemon(0)
@@ -192,7 +216,8 @@ class Swarm:
         s = self.settings
         d = self.daemons[i]
         sections = {
-            "vehicle": {"id": d.vehicle_id, "mavlink": f"udpin:{self.address(i)}:{s.mavlink_base + i}"},
+            "vehicle": {"id": d.vehicle_id,
+                        "mavlink": f"udpin:{self.mavlink_address(i)}:{s.mavlink_base + i}"},
             "camera": {"source": f"socket:{self.workdir / f'camera{i}.sock'}"},
             "sharing": {"listen_host": self.address(i), "port": s.sharing_port,
                         "peers": [self.lab.range_spec(s.drones)], "peer_ports": [s.sharing_port],
@@ -201,8 +226,8 @@ class Swarm:
             "daemon": {"memory_mb": s.memory_mb, "state_dir": str(d.state_dir),
                        "control_socket": str(d.socket), "checkpoint_period_s": s.checkpoint_period_s},
         }
-        if s.swarm_key is not None:
-            sections["sharing"]["swarm_key_file"] = str(self.workdir / "swarm.key")
+        if self.key_file(i) is not None:
+            sections["sharing"]["swarm_key_file"] = str(self.key_file(i))
         for name, table in s.config.items():
             sections.setdefault(name, {}).update(table)
         return sections
@@ -221,6 +246,7 @@ class Swarm:
             d.proc = subprocess.Popen(self.lab.command(i + 1, argv), stdout=log, stderr=subprocess.STDOUT,
                                       env=env, cwd=ROOT)
         d.starts += 1
+        d.killed = False
         return d
 
     def kill_daemon(self, i: int, sig: int = signal.SIGKILL, timeout_s: float = 10.0) -> int:
@@ -228,6 +254,7 @@ class Swarm:
         d = self.daemons[i]
         if not d.running():
             return d.proc.returncode if d.proc is not None else 0
+        d.killed = True
         d.proc.send_signal(sig)
         try:
             return d.proc.wait(timeout_s)
@@ -235,10 +262,65 @@ class Swarm:
             d.proc.kill()
             return d.proc.wait(10)
 
+    # ------------------------------------------------------------------------------ faults
+    def radio(self, i: int, up: bool) -> None:
+        """Cut or restore drone i's radio (its port on the swarm bridge); its FC link stays. netns only."""
+        self.lab.link(i + 1, up)
+
+    def fc_link(self, i: int, up: bool) -> None:
+        """Cut or restore drone i's wired flight-controller link; its radio stays. netns only."""
+        self.lab.fc_link(i + 1, up)
+
+    def small_disk(self, i: int, size: str = "16m") -> Path:
+        """Put drone i's state directory on its own tmpfs of `size` (before start_daemon), so that
+        fill_disk() fills only that drone's disk; unmounted by stop(). Needs root."""
+        d = self.daemons[i]
+        d.state_dir.mkdir(parents=True, exist_ok=True)
+        subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "tmpfs", str(d.state_dir)],
+                       check=True, capture_output=True, timeout=10)
+        self.mounts.append(d.state_dir)
+        return d.state_dir
+
+    def fill_disk(self, i: int, chunk: int = 1 << 16) -> int:
+        """Fill drone i's state directory's file system to the last byte (a filler file, removed by
+        free_disk); returns the bytes written. Meant for a small_disk()."""
+        written = 0
+        buf = b"\0" * chunk
+        with open(self.daemons[i].state_dir / "filler", "ab", buffering=0) as f:
+            while chunk:
+                try:
+                    written += f.write(buf[:chunk])
+                except OSError:
+                    chunk //= 2  # the last bytes: smaller writes until not even one byte fits
+        return written
+
+    def free_disk(self, i: int) -> None:
+        """Remove fill_disk()'s filler file."""
+        (self.daemons[i].state_dir / "filler").unlink(missing_ok=True)
+
+    def start_hostile(self, seconds: float, host: int = 200, max_connections: int = 1000) -> subprocess.Popen:
+        """A hostile host (its own namespace on the swarm bridge, netns only) attacking every daemon's
+        map server for `seconds` (firmware_sim.attacker); its JSON summary is on the Popen's stdout."""
+        if self.network_mode != "netns":
+            raise RuntimeError("a hostile host needs network namespaces (root and iproute2)")
+        if host in self.lab.hosts or host <= self.settings.drones:
+            raise ValueError(f"host {host} is taken")
+        self.lab.add_host(host)
+        argv = [sys.executable, "-m", "firmware_sim.attacker", "--seconds", str(seconds),
+                "--max-connections", str(max_connections),
+                "--block-size", str(self.settings.config.get("sharing", {}).get("block_size", 4096))]
+        for i in range(self.settings.drones):
+            argv += ["--target", f"{self.address(i)}:{self.settings.sharing_port}"]
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        proc = subprocess.Popen(self.lab.command(host, argv), stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT)
+        self.hostiles.append(proc)
+        return proc
+
     # ------------------------------------------------------------------------------ watching
     def check_alive(self) -> None:
         for d in self.daemons:
-            if d.proc is not None and d.proc.poll() is not None:
+            if d.proc is not None and not d.killed and d.proc.poll() is not None:
                 raise RuntimeError(f"coopd of drone {d.vehicle_id} exited with code {d.proc.returncode}; "
                                    f"log {d.log_path}:\n{d.log_tail(1500)}")
 
@@ -354,6 +436,10 @@ class Swarm:
         if self._stopped:
             return
         self._stopped = True
+        for proc in self.hostiles:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait(10)
         for d in self.daemons:
             if d.running():
                 d.proc.send_signal(signal.SIGTERM)
@@ -368,6 +454,9 @@ class Swarm:
                 d.proc.wait()
         if self.sim is not None:
             self.sim.stop()
+        for mount in self.mounts:
+            subprocess.run(["umount", "-l", str(mount)], capture_output=True, timeout=10)
+        self.mounts.clear()
         if self.lab is not None:
             self.lab.cleanup()
         if self.own_workdir and not keep_files:

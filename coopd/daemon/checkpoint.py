@@ -12,6 +12,7 @@ generation first; one that is torn, corrupt, of the wrong type or oversized is r
 """
 
 import errno
+import json
 import logging
 import os
 import re
@@ -243,3 +244,51 @@ class CheckpointStore:
 def _check_name(name: str) -> None:
     if not isinstance(name, str) or not NAME.fullmatch(name):
         raise ValueError(f"checkpoint name {name!r} must match {NAME.pattern}")
+
+
+VERSION_FILE = "version-reserve.json"
+VERSION_STEP = 10_000
+"""Versions reserved per write: a daemon killed -9 resumes at most this far above its last map."""
+
+
+class VersionReserve:
+    """Local map versions are reserved on disk before they are published, so a daemon killed -9
+    (whose checkpoint may be older than what it already shared) resumes above every version a
+    peer may hold: one (vehicle, version) never names two different maps. `reserved` is the
+    highest version that may have been published."""
+
+    def __init__(self, directory: Path, step: int = VERSION_STEP):
+        self.path = Path(directory) / VERSION_FILE
+        self.step = step
+        self.failed = 0
+        self.reserved = self._read()
+
+    def _read(self) -> int:
+        try:
+            with open(self.path, "rb") as f:
+                value = json.loads(f.read(256))["reserved"]
+        except FileNotFoundError:
+            return 0
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log.error("%s unreadable (%s): map versions resume from the checkpoint", self.path, e)
+            return 0
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < 2**31:
+            log.error("%s holds no valid version: map versions resume from the checkpoint", self.path)
+            return 0
+        return value
+
+    def ensure(self, version: int) -> bool:
+        """Make sure `version` is within the reserve (one write per `step` versions); False if the
+        reserve could not be written (e.g. disk full: counted and logged, publishing goes on)."""
+        if version <= self.reserved:
+            return True
+        reserved = min(version + self.step, 2**31 - 1)
+        try:
+            atomic.write_atomic(self.path, json.dumps({"reserved": reserved}).encode())
+        except OSError as e:
+            self.failed += 1
+            if self.failed == 1 or self.failed % 100 == 0:
+                log.error("cannot reserve map versions in %s (%s, %d times)", self.path, e, self.failed)
+            return False
+        self.reserved = reserved
+        return True

@@ -28,7 +28,7 @@ import numpy as np
 
 from coopd.camera import LatestSlot, RealSenseSource, SocketDepthSource, SocketSourceConfig
 from coopd.daemon.budget import MemoryBudget
-from coopd.daemon.checkpoint import CheckpointStore
+from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
 from coopd.daemon.control import BlobReply, CommandFailed, ControlServer
 from coopd.daemon.merger import Merger, find_merge_all
@@ -168,6 +168,7 @@ class Daemon:
         self.priorities = ThreadPriorities()
         self.state_dir = Path(config.daemon.state_dir)
         self.store = CheckpointStore(self.state_dir, keep=config.daemon.checkpoint_keep)
+        self.versions = VersionReserve(self.state_dir)
         self.link = VehicleLink(link_config(config))
         self.slot: LatestSlot = LatestSlot()
         self.camera = self._make_camera()
@@ -285,6 +286,11 @@ class Daemon:
                     *origin,
                 )
         mapper = Mapper(cfg, grid)
+        if self.versions.reserved and self.versions.reserved >= version:
+            # Any version up to the reserve may have been published with other content.
+            log.info("local map versions resume above the reserve %d, not at the checkpoint's %d",
+                     self.versions.reserved, version)
+            version = self.versions.reserved + 1
         mapper.version = version
         self.budget.reserve("local", mapper.grid.size)
         return mapper
@@ -387,11 +393,12 @@ class Daemon:
         log.info("kernels ready in %.1f s", time.monotonic() - t0)
 
     def _remove_stray_temp_files(self) -> None:
-        for p in self.state_dir.glob(f".{FRAME_FILE}.*.tmp"):
-            try:
-                p.unlink()
-            except OSError:
-                pass
+        for name in (FRAME_FILE, VERSION_FILE):
+            for p in self.state_dir.glob(f".{name}.*.tmp"):
+                try:
+                    p.unlink()
+                except OSError:
+                    pass
 
     def request_stop(self, reason: str) -> None:
         """Ask run() to return (signal handlers call this; it only sets an event)."""
@@ -482,6 +489,7 @@ class Daemon:
             version = self.mapper.version
             if version >= 1 and version > self._published_version:
                 v, message = self.local_message()
+                self.versions.ensure(v)
                 try:
                     self.sharing.publish(message, v)
                     self._published_version = v

@@ -78,7 +78,8 @@ def build(daemon) -> dict:
         "memory": daemon.budget.snapshot(),
         "threads": threads(daemon),
         "control": daemon.control.stats(),
-        "checkpoint": daemon.store.stats(),
+        "checkpoint": {**daemon.store.stats(), "versions_reserved": daemon.versions.reserved,
+                       "version_reserve_failed": daemon.versions.failed},
         "watchdog": {
             "interval_s": daemon.watchdog.interval,
             "pings": daemon.watchdog.pings,

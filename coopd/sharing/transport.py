@@ -21,6 +21,50 @@ SEND_CHUNK = 256 * 1024
 """Bytes per sendall: each chunk gets the write timeout, so a stalled receiver is noticed."""
 
 
+class DropLog:
+    """Warnings about dropped transfers, at most `burst` per remote address per `window_s`, so a
+    hostile host cannot flood the journal; the next warning after a quiet window says how many
+    were held back (the failure counters in `coopctl status` count every one)."""
+
+    MAX_ADDRESSES = 1024
+
+    def __init__(self, burst: int = 5, window_s: float = 60.0, clock=time.monotonic):
+        self.burst, self.window_s, self._clock = burst, window_s, clock
+        self._lock = threading.Lock()
+        self._windows: dict[str, list] = {}  # address -> [window start, warned, held back]
+        self.held_back = 0
+
+    def warn(self, address: str, vehicle_id, cause: str, detail: str) -> bool:
+        """Log one drop unless this address used up its burst; True if it was logged."""
+        now = self._clock()
+        with self._lock:
+            w = self._windows.get(address)
+            held = 0
+            if w is None or now - w[0] >= self.window_s:
+                held = 0 if w is None else w[2]
+                if w is None and len(self._windows) >= self.MAX_ADDRESSES:
+                    self._forget_old(now)
+                w = self._windows[address] = [now, 0, 0]
+            if w[1] >= self.burst:
+                w[2] += 1
+                self.held_back += 1
+                return False
+            w[1] += 1
+        more = f" ({held} more from {address} not logged in the last window)" if held else ""
+        log.warning("transfer from %s (vehicle %s) dropped: %s: %s%s", address, vehicle_id, cause, detail,
+                    more)
+        return True
+
+    def _forget_old(self, now: float) -> None:
+        for address, w in list(self._windows.items()):
+            if now - w[0] >= self.window_s:
+                del self._windows[address]
+        if len(self._windows) >= self.MAX_ADDRESSES:  # all recent: forget the oldest half
+            oldest = sorted(self._windows.items(), key=lambda kv: kv[1][0])[: self.MAX_ADDRESSES // 2]
+            for address, _ in oldest:
+                del self._windows[address]
+
+
 @dataclass(frozen=True)
 class TransportSettings:
     """Timeouts and bounds of both ends of a connection (docs/sharing.md, 'Settings')."""
@@ -145,6 +189,7 @@ class MapServer:
         self._accept_thread: threading.Thread | None = None
         self.refused_busy = 0
         self.accepted = 0
+        self.drops = DropLog()
         self.instance = int.from_bytes(os.urandom(8), "little")
         """Random per server: tells peers this daemon restarted (and lost what it had received)."""
 
@@ -273,8 +318,7 @@ class _Connection:
             self.reasm.close()
         if cause is not None:
             self.server.peers.failure(cause, self.vehicle_id, self.address)
-            log.warning("transfer from %s (vehicle %s) dropped: %s: %s", self.address, self.vehicle_id,
-                        cause, detail)
+            self.server.drops.warn(self.address, self.vehicle_id, cause, detail)
 
     def _loop(self) -> None:
         s = self.s

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from coopd.daemon.checkpoint import CheckpointStore
+from coopd.daemon.checkpoint import CheckpointStore, VersionReserve
 from coopd.grid import OccupancyGrid
 from coopd.sharing.wire import DecodeLimits, MapMeta, encode_map, encode_thesis_map
 
@@ -180,6 +180,24 @@ def test_disk_full_on_a_real_tiny_tmpfs(tiny_tmpfs):
     filler.unlink()
     assert store.save("local", big, MapMeta(1, 3)) is not None  # space back: saving resumes
     assert store.load_latest("local").grid.same_cells(big)
+
+
+def test_version_reserve_is_written_ahead_and_read_back(tmp_path, monkeypatch):
+    reserve = VersionReserve(tmp_path, step=100)
+    assert reserve.reserved == 0 and reserve.ensure(5) and reserve.reserved == 105
+    written = (tmp_path / "version-reserve.json").stat().st_mtime_ns
+    assert reserve.ensure(105) and (tmp_path / "version-reserve.json").stat().st_mtime_ns == written
+    assert VersionReserve(tmp_path).reserved == 105  # what a restarted daemon sees
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    assert not reserve.ensure(106) and reserve.failed == 1 and reserve.reserved == 105
+    monkeypatch.undo()
+    for junk in (b"\x00not json", b'{"reserved": -4}', b'{"reserved": true}', b"{}"):
+        (tmp_path / "version-reserve.json").write_bytes(junk)
+        assert VersionReserve(tmp_path).reserved == 0
 
 
 def test_unfinished_temp_files_are_cleaned_on_open(tmp_path):

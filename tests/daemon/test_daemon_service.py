@@ -16,7 +16,7 @@ from daemon_harness import NotifyListener, port_block, wait_until, workdir
 
 from coopd.daemon import control
 from coopd.daemon.budget import MemoryBudget
-from coopd.daemon.checkpoint import CheckpointStore
+from coopd.daemon.checkpoint import CheckpointStore, VersionReserve
 from coopd.daemon.config import from_dict
 from coopd.daemon.main import main
 from coopd.daemon.merger import NOT_AVAILABLE, Merger
@@ -206,6 +206,20 @@ def test_resume_from_checkpoint_keeps_version_cells_and_map_frame(wd):
     d.checkpoint()
     _, meta = decode_map(store.generations("local")[0][1].read_bytes())
     assert meta.version == 45
+    d.mapper.close()
+
+
+def test_resume_after_kill9_continues_above_every_version_it_may_have_published(wd):
+    """Regression (swarm fault matrix): a daemon killed -9 three versions after its last checkpoint
+    resumed at the checkpoint's version, so peers held a different map under the versions it
+    published next."""
+    cfg = _config(wd)
+    store = CheckpointStore(cfg.daemon.state_dir)
+    store.save("local", _box_grid(), MapMeta(1, 77))
+    (wd / "state" / FRAME_FILE).write_text(json.dumps({"vehicle_id": 1, "origin_fc_enu": [0, 0, 0]}))
+    VersionReserve(cfg.daemon.state_dir).ensure(80)  # v78..v80 went out before the kill
+    d = Daemon(cfg)
+    assert d.mapper.version > 80 and d.mapper.grid.counts().known > 0
     d.mapper.close()
 
 

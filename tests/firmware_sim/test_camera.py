@@ -258,3 +258,26 @@ def test_fast_and_general_z16_paths_agree(house):
 
     np.testing.assert_array_equal(cam.render_z16(sim.data), depth_to_z16(cam.render_depth(sim.data), cam.cfg))
     sim.stop()
+
+
+def test_camera_stall_withholds_one_vehicles_frames_then_resumes(house):
+    sim = Simulation(house, 2, seed=0, mavlink=False, noise="none")
+    got: dict[int, list[int]] = {0: [], 1: []}
+    sim.frame_sink = lambda i, header, z16: got[i].append(header["seq"])
+    sim.step(0.5)
+    before = len(got[0])
+    assert before > 0
+    sim.stall_camera(0, 600)
+    assert sim.camera_stalled(0) and not sim.camera_stalled(1)
+    sim.step(1.0)
+    assert len(got[0]) == before  # vehicle 0 silent, vehicle 1 unaffected
+    assert len(got[1]) > 2 * before and sim.vehicle(0).frames_withheld >= before
+    sim.stall_camera(0, 0)
+    assert not sim.camera_stalled(0)
+    sim.step(0.5)
+    resumed = got[0][before:]
+    # the gap in sequence numbers is the frames lost to the stall
+    assert resumed and resumed[0] - got[0][before - 1] == sim.vehicle(0).frames_withheld + 1
+    with pytest.raises(ValueError):
+        sim.stall_camera(0, -1)
+    sim.stop()

@@ -11,7 +11,7 @@ import sharing_testmsg as tm
 from sharing_support import failures, service, settings, wait_until
 
 from coopd.sharing import mtp
-from coopd.sharing.transport import PeerLink
+from coopd.sharing.transport import DropLog, PeerLink
 
 BS = 256
 
@@ -251,3 +251,37 @@ def test_trickle_under_a_large_announcement_is_cut_by_the_rate_floor(server):
         s.close()
     assert wait_until(lambda: failures(svc).get("timeout") == 1, 2)
     assert time.monotonic() - t0 < 2.5
+
+
+def test_drop_warnings_are_limited_per_address_and_the_rest_summed_up(caplog):
+    now = [0.0]
+    drops = DropLog(burst=3, window_s=60.0, clock=lambda: now[0])
+    with caplog.at_level("WARNING", logger="coopd.sharing"):
+        logged = [drops.warn("10.0.0.9", None, "frame", "not MTP") for _ in range(50)]
+        assert drops.warn("10.0.0.1", 2, "cut", "closed")  # another address has its own burst
+        now[0] = 61.0
+        assert drops.warn("10.0.0.9", None, "frame", "not MTP")
+    assert logged == [True] * 3 + [False] * 47 and drops.held_back == 47
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 5 and "47 more from 10.0.0.9 not logged" in lines[-1]
+
+
+def test_drop_log_forgets_addresses_beyond_its_bound():
+    now = [0.0]
+    drops = DropLog(burst=1, window_s=60.0, clock=lambda: now[0])
+    for k in range(3 * DropLog.MAX_ADDRESSES):
+        now[0] = k * 1e-3
+        drops.warn(f"10.1.{k // 250}.{k % 250}", None, "frame", "x")
+    assert len(drops._windows) <= DropLog.MAX_ADDRESSES
+
+
+def test_a_hostile_host_fills_the_counters_not_the_log(server, caplog):
+    svc = server()
+    with caplog.at_level("WARNING", logger="coopd.sharing"):
+        for _ in range(12):
+            with socket.create_connection(svc.address, timeout=2) as s:
+                s.sendall(b"\x01" * 300)
+                assert closed_by_server(s)
+        assert wait_until(lambda: failures(svc).get("frame") == 12, 3), failures(svc)
+    dropped = [r for r in caplog.records if "dropped" in r.getMessage()]
+    assert len(dropped) == svc._server.drops.burst and svc._server.drops.held_back == 12 - len(dropped)
