@@ -18,6 +18,7 @@ from firmware_sim.swarm import NETNS_TAG, Swarm, SwarmSettings, render_config
 
 ROOT = Path(__file__).resolve().parents[2]
 PORTS = 20200 + (os.getpid() % 20) * 20  # MAVLink ports from here, map servers on PORTS + 10
+NET = 2 + os.getpid() % 98  # this run's own swarm and FC networks (10.214.NET, 10.215.NET)
 
 
 def our_namespaces() -> list[str]:
@@ -52,7 +53,8 @@ def test_render_config_is_valid_toml_with_overrides(tmp_path):
 
 @pytest.mark.slow
 def test_two_drones_share_merge_and_leave_nothing_behind():
-    settings = SwarmSettings(drones=2, mavlink_base=PORTS, sharing_port=PORTS + 10, speed=2.0)
+    settings = SwarmSettings(drones=2, mavlink_base=PORTS, sharing_port=PORTS + 10, speed=2.0,
+                             subnet=f"10.214.{NET}", fc_subnet=f"10.215.{NET}")
     swarm = Swarm(settings, say=print)
     workdir = swarm.workdir
     try:
