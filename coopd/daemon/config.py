@@ -251,6 +251,10 @@ class MergingConfig:
     distributed: bool = _key(
         "publish our merge results and use peers' as hints (false: own warm start only)", True
     )
+    defer_full_s: float = _key(
+        "distributed: seconds a map's full search waits for a lower vehicle id's result; 0: never",
+        30.0, _between(0.0, 3600.0, " s"),
+    )
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from collections.abc import Callable
 import numpy as np
 
 from coopd.daemon.budget import BudgetExceeded, MemoryBudget
+from coopd.geometry import rotation_angle_deg
 from coopd.grid import OccupancyGrid
 from coopd.sharing.wire import (
     DEFAULT_LIMITS,
@@ -90,6 +91,7 @@ class Merger:
         publish_results: Callable[[MergeResultMessage], None] | None = None,
         local_version: Callable[[], int] | None = None,
         settle_s: float = 0.0,
+        defer_full_s: float = 0.0,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -111,6 +113,18 @@ class Merger:
         self._accepted: dict[int, np.ndarray] = {}
         """Vehicle id -> last accepted transform of its map frame into ours (the own hints)."""
         self._result_version = 0
+        self._published: dict[int, np.ndarray] = {}
+        """Vehicle id -> transform we last published: an unchanged set is not published again (a
+        new version would make every peer merge again, and their answers make us merge again)."""
+        self.defer_full_s = defer_full_s
+        """Distributed: a map's full search waits this long for the swarm's lowest vehicle id to
+        publish it (then validating its result is enough); 0: never wait."""
+        self._first_seen: dict[int, float] = {}
+        self._unmerged: set[int] = set()
+        self._deferring = False
+        """The last merge left a map's full search to a peer: merge again on the period even if
+        nothing changed, so that the search runs here once defer_full_s is over."""
+        """Vehicles whose maps the last merge left out (refused or deferred)."""
         self.local_version = local_version
         """The local map's version without copying it; given, a merge whose inputs (this and every
         received map's version) equal those of the last merge done is skipped, counted "unchanged"."""
@@ -194,7 +208,8 @@ class Merger:
                 next_periodic = time.monotonic() + self.period_s
             if self.enabled and self.available:
                 inputs = self.inputs()
-                if not urgent and inputs is not None and inputs == self._merged_inputs:
+                same = inputs is not None and inputs == self._merged_inputs
+                if not urgent and same and not self._deferring:
                     self.counters["unchanged"] += 1  # merging is deterministic: the same global map again
                 else:
                     if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
@@ -213,12 +228,12 @@ class Merger:
 
     def inputs(self) -> tuple | None:
         """(local version, (vehicle id, version) of every received map, and of every peer's merge
-        results when distributed: a new result may merge a map the last merge refused); None
+        results when distributed and a map was left out: a new result may merge it); None
         without local_version."""
         if self.local_version is None:
             return None
         results = ()
-        if self.distributed and self.peer_results is not None:
+        if self.distributed and self.peer_results is not None and self._unmerged:
             results = tuple(sorted((r.vehicle_id, r.version) for r in self.peer_results()))
         return (self.local_version(), tuple(sorted((m.vehicle_id, m.version) for m in self.received_maps())),
                 results)
@@ -266,7 +281,12 @@ class Merger:
                 vids = [m.vehicle_id for m, _ in infos]
                 others = [decode_map(m.data, self.limits)[0] for m, _ in infos]
                 hints = self._hints(vids)
-                if any(hints):
+                hints_only = self._deferred(vids, hints)
+                self._deferring = bool(hints_only)
+                if hints_only:
+                    result = self.merge_fn(local_grid, others, self.params, hints=hints,
+                                           hints_only=hints_only)
+                elif any(hints):
                     result = self.merge_fn(local_grid, others, self.params, hints=hints)
                 else:
                     result = self.merge_fn(local_grid, others, self.params)
@@ -280,6 +300,7 @@ class Merger:
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
         self._count(result)
+        self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
         self._publish(self._remember([m for m, _ in infos], result.results, local_version))
         if not self.budget.reserve("global", merged.size):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
@@ -300,6 +321,26 @@ class Merger:
         if self.distributed and self.peer_results is not None:
             peer = [r for r in self.peer_results() if r.vehicle_id != self.vehicle_id]
         return hints_for(self.vehicle_id, vids, self._accepted, peer)
+
+    def _deferred(self, vids: list[int], hints: list[list]) -> frozenset[int]:
+        """Input maps whose full search waits for a peer: distributed, a lower vehicle id than ours
+        holds maps too (it searches, we validate its result: the swarm's merge work drops from
+        N(N-1) full searches towards N-1), never merged here, no hint yet, first seen less than
+        defer_full_s ago. Bounded: after that we search ourselves."""
+        if not (self.distributed and self.defer_full_s > 0 and vids) or min(vids) > self.vehicle_id:
+            return frozenset()
+        now = time.monotonic()
+        out = set()
+        for k, vid in enumerate(vids):
+            first = self._first_seen.setdefault(vid, now)
+            if vid not in self._accepted and not hints[k] and now - first < self.defer_full_s:
+                out.add(k)
+        return frozenset(out)
+
+    def on_peer_result(self) -> None:
+        """A peer's merge result arrived: merge again if it may bring a map we left out."""
+        if self.distributed and self._unmerged:
+            self.request("peer result")
 
     def _count(self, result) -> None:
         """Merge work by kind: full searches, hints accepted (own / peer) and hints refused."""
@@ -327,6 +368,9 @@ class Merger:
         """Publish our validated merges for peers (only when distributed and there are any)."""
         if not (self.distributed and self.publish_results is not None and edges):
             return
+        if not self._changed(edges):
+            return
+        self._published = {e.b: e.transform for e in edges}
         # increasing across restarts while the clock does: a peer keeps only newer versions
         self._result_version = max(self._result_version + 1, time.time_ns() // 1000)
         try:
@@ -334,6 +378,17 @@ class Merger:
                                                     tuple(edges[:MAX_EDGES])))
         except ValueError as e:
             log.error("publishing merge results refused: %s", e)
+
+    def _changed(self, edges: list[MergeEdge]) -> bool:
+        """Edges differ from the last published: other vehicles, or a transform moved > 2 cm / 0.2 deg."""
+        if {e.b for e in edges} != set(self._published):
+            return True
+        for e in edges:
+            old = self._published[e.b]
+            moved = float(np.linalg.norm(old[:3, 3] - e.transform[:3, 3]))
+            if moved > 0.02 or rotation_angle_deg(old[:3, :3].T @ e.transform[:3, :3]) > 0.2:
+                return True
+        return False
 
     def _set_global(self, value) -> None:
         with self._cv:

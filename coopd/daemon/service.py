@@ -182,6 +182,7 @@ class Daemon:
                 sharing_config(config, self.budget),
                 verify=wire_verifier(config.sharing.max_map_cells, config.sharing.max_map_bytes),
                 on_map=self._on_map_received,
+                on_result=lambda _vid, _version: self.merger.on_peer_result(),
             )
             if config.sharing.enabled
             else None
@@ -201,6 +202,7 @@ class Daemon:
             publish_results=self._publish_results,
             local_version=lambda: self.mapper.version,
             settle_s=min(config.sharing.scan_period_s, MERGE_MIN_GAP_S),
+            defer_full_s=config.merging.defer_full_s,
         )
         self.control = ControlServer(
             config.daemon.control_socket,

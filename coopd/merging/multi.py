@@ -58,12 +58,14 @@ class _World:
 
 
 def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
-              params: MergeParams | None = None, hints: list[list[Hint]] | None = None) -> GlobalMergeResult:
+              params: MergeParams | None = None, hints: list[list[Hint]] | None = None,
+              hints_only: frozenset[int] = frozenset()) -> GlobalMergeResult:
     """Merge others into a copy of reference, retrying failures while the global map keeps growing.
 
     hints[i]: candidate transforms for others[i] (hints.py). Hints go first and are retried whenever
     the global map grew (a hint of a map that overlaps only a later one fails against the reference
-    alone); a map's full search runs only when none of its hints validates now."""
+    alone); a map's full search runs only when none of its hints validates now, and never for the
+    maps in hints_only (their full search is left to a peer whose result will come as a hint)."""
     params = params or coopd_params()
     hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
     if len(hints) != len(others):
@@ -123,7 +125,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         searched: set[int] = set()
         while True:
             run_hints(pending)
-            todo = [i for i in _order(pending, hints) if i not in merged and i not in searched]
+            todo = [i for i in _order(pending, hints)
+                    if i not in merged and i not in searched and i not in hints_only]
             if not todo:
                 break
             i = todo[0]
@@ -136,4 +139,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         pending = [i for i in pending if i not in merged]
         if len(merged) == before:
             break
+    for i in range(len(others)):
+        if results[i] is None:  # in hints_only, and no hint validated
+            results[i] = MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0,
+                                     "deferred: full search left to a peer's merge result", method="deferred")
     return GlobalMergeResult(world.grid, results, rounds, refused, full)

@@ -79,12 +79,14 @@ class SharingService:
     """Server + discovery + one sender per peer vehicle; see the module docstring."""
 
     def __init__(self, config: SharingConfig, inspect: Callable = wire_inspect,
-                 verify: Callable | None = None, on_map: Callable | None = None):
+                 verify: Callable | None = None, on_map: Callable | None = None,
+                 on_result: Callable[[int, int], None] | None = None):
         self.config = config
         self.vehicle_id = config.vehicle_id
         self._inspect = inspect
         self._verify = verify
         self._on_map = on_map
+        self._on_result = on_result
         self.peers = PeerTable()
         self.received = ReceivedStore(config.max_vehicles, config.max_received_bytes)
         self.results = ResultStore(config.max_vehicles)
@@ -284,6 +286,12 @@ class SharingService:
                             arrival.address, kind="result")
         log.info("merge result of vehicle %d v%d received (%d edges)", summary.vehicle_id,
                  summary.version, len(message.edges))
+        if self._on_result is not None:
+            try:
+                self._on_result(summary.vehicle_id, summary.version)
+            except Exception:  # the result is stored; a consumer's bug must not fail the transfer
+                log.exception("on_result callback failed for vehicle %d v%d", summary.vehicle_id,
+                              summary.version)
         return mtp.ACK_OK
 
     # ------------------------------------------------------------------ discovery
