@@ -23,9 +23,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from coopd.daemon import control  # noqa: E402
-from coopd.geometry import invert, rigid, rotation_angle_deg  # noqa: E402
+from coopd.geometry import invert  # noqa: E402
 from coopd.io import export_png_top, load_cmap  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
+from coopd.sharing.wire import decode_map  # noqa: E402
+from firmware_sim import accuracy as acc  # noqa: E402
 from firmware_sim.simulation import Simulation  # noqa: E402
 from firmware_sim.worlds import GENERATORS, build_world  # noqa: E402
 
@@ -180,11 +182,22 @@ def merged_vehicles(s: dict | None) -> dict:
     return {int(k): v for k, v in offsets.items() if v.get("accepted", True)}
 
 
-def world_from_map(sim: Simulation, i: int, origin_enu) -> np.ndarray:
-    """Truth: drone i's map frame in the world (its reporting frame, moved to the first sample)."""
-    odo = sim.vehicle(i).odometry
-    frame = rigid(odo.frame_rot, odo.origin)
-    return frame @ rigid(translation=np.asarray(origin_enu if origin_enu is not None else [0, 0, 0], float))
+def world_from_map(sim: Simulation, i: int, link: dict) -> np.ndarray:
+    """Truth: drone i's map frame in the world (its reporting frame as drifted when the daemon took
+    its first sample, moved to that sample); `link` is the daemon's status["link"]."""
+    return acc.map_frame_in_world(sim.vehicle(i).odometry, link.get("map_origin_fc_enu"),
+                                  link.get("map_origin_t_fc"))
+
+
+def map_vs_truth(demo: Demo, i: int, grid, truth_i: np.ndarray, link: dict) -> dict:
+    """Occupied-cell precision/recall of a map of drone i vs the world's ground truth in the region it
+    explored, and the drift the emulator put into drone i's odometry since its map origin."""
+    gt, gt_origin = demo.world.ground_truth(0.1)
+    out = acc.map_accuracy(grid, acc.transform_points(truth_i), gt, gt_origin)
+    t0 = link.get("map_origin_t_fc")
+    if t0 is not None:
+        out["drift_m"], out["drift_deg"] = acc.drift_since(demo.sim.vehicle(i).odometry, t0, demo.sim.time)
+    return {k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}
 
 
 def main() -> int:
@@ -242,8 +255,9 @@ def report(demo: Demo, statuses, elapsed: float) -> int:
     n = args.drones
     print(f"\n== coopd demo report: {args.world}, {n} drones, {elapsed:.0f} s wall, "
           f"{demo.sim.time:.0f} s simulated")
-    origins = [((s or {}).get("link") or {}).get("map_origin_fc_enu") for s in statuses]
+    links = [(s or {}).get("link") or {} for s in statuses]
     ok = True
+    accuracy = []
     for i, s in enumerate(statuses):
         vid = i + 1
         if not s:
@@ -255,19 +269,23 @@ def report(demo: Demo, statuses, elapsed: float) -> int:
         merged = merged_vehicles(s)
         print(f"drone {vid}: {m.get('known', 0)} cells mapped, {received} maps received, "
               f"{(s.get('merges') or {}).get('done', 0)} merges, {len(merged)}/{n - 1} maps merged")
-        truth_i = world_from_map(demo.sim, i, origins[i])
+        truth_i = world_from_map(demo.sim, i, links[i])
+        entry_i = {"drone": vid, "merged": len(merged), "pairs": []}
+        accuracy.append(entry_i)
         for j in range(n):
             if j == i:
                 continue
             entry = merged.get(j + 1)
             if entry is None:
                 print(f"   drone {j + 1}: not merged")
+                entry_i["pairs"].append({"peer": j + 1, "merged": False})
                 ok = False
                 continue
             est = np.array(entry["transform"], float).reshape(4, 4)
-            truth = invert(truth_i) @ world_from_map(demo.sim, j, origins[j])
-            dt = float(np.linalg.norm(est[:3, 3] - truth[:3, 3]))
-            dyaw = rotation_angle_deg(est[:3, :3].T @ truth[:3, :3])
+            truth = invert(truth_i) @ world_from_map(demo.sim, j, links[j])
+            dt, dyaw = acc.offset_error(est, truth)
+            entry_i["pairs"].append({"peer": j + 1, "merged": True, "error_m": round(dt, 4),
+                                     "error_deg": round(dyaw, 3)})
             yaw = math.degrees(math.atan2(est[1, 0], est[0, 0]))
             print(f"   drone {j + 1}: offset x {est[0, 3]:6.2f} y {est[1, 3]:6.2f} z {est[2, 3]:5.2f} m, "
                   f"yaw {yaw:7.1f} deg; error vs truth {dt:.2f} m, {dyaw:.1f} deg")
@@ -279,11 +297,21 @@ def report(demo: Demo, statuses, elapsed: float) -> int:
             grid, _ = load_cmap(cmap)
             export_png_top(grid, out / f"global_{vid}.png")
             print(f"   wrote {cmap} and {out / f'global_{vid}.png'}")
+            entry_i["global"] = map_vs_truth(demo, i, grid, truth_i, links[i])
+            _, blob = control.request(demo.socket(i), "dump-map", {"map": "local"}, timeout_s=60.0,
+                                      max_blob_bytes=512 * 1024 * 1024)
+            entry_i["local"] = map_vs_truth(demo, i, decode_map(blob)[0], truth_i, links[i])
+            g, loc = entry_i["global"], entry_i["local"]
+            print(f"   vs ground truth: global map precision {g['precision']:.3f} recall {g['recall']:.3f}; "
+                  f"own map {loc['precision']:.3f} / {loc['recall']:.3f}; "
+                  f"odometry drift since map origin {loc.get('drift_m', math.nan):.2f} m, "
+                  f"{loc.get('drift_deg', math.nan):.2f} deg")
         except (control.ControlError, OSError, ValueError) as e:
             print(f"   could not dump the global map: {e}")
             ok = False
-    (out / "demo_report.json").write_text(json.dumps({"world": args.world, "drones": n, "elapsed_s": elapsed,
-                                                      "statuses": statuses}, indent=1, default=str))
+    report_json = {"world": args.world, "drones": n, "elapsed_s": elapsed, "sim_s": demo.sim.time,
+                "lag_resets": demo.sim.lag_resets, "accuracy": accuracy, "statuses": statuses}
+    (out / "demo_report.json").write_text(json.dumps(report_json, indent=1, default=str))
     return 0 if ok else 1
 
 
