@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from coopd.daemon import control
-from coopd.geometry import invert, rigid, rotation_angle_deg
+from coopd.geometry import invert
+from firmware_sim import accuracy as acc
 from firmware_sim.netns import LoopbackLab, NetnsLab, netns_unavailable_reason, remove_stale
 from firmware_sim.simulation import Simulation
 from firmware_sim.worlds import build_world
@@ -400,34 +401,41 @@ class Swarm:
                 progress()
 
     # ------------------------------------------------------------------------------ truth
-    def map_to_world(self, i: int, origin_fc_enu) -> np.ndarray:
-        """Truth: drone i's map frame in the world (its FC's reporting frame, moved to the map origin
-        its daemon reports as link.map_origin_fc_enu)."""
-        odo = self.sim.vehicle(i).odometry
-        origin = np.zeros(3) if origin_fc_enu is None else np.asarray(origin_fc_enu, float)
-        return rigid(odo.frame_rot, odo.origin) @ rigid(translation=origin)
-
-    @staticmethod
-    def map_origin(s: dict | None):
-        return ((s or {}).get("link") or {}).get("map_origin_fc_enu")
+    def map_to_world(self, i: int, status: dict | None) -> np.ndarray:
+        """Truth: drone i's map frame in the world: its FC's reporting frame as drifted when its
+        daemon took the map origin (status link.map_origin_fc_enu / map_origin_t_fc), moved there."""
+        link = (status or {}).get("link") or {}
+        return acc.map_frame_in_world(self.sim.vehicle(i).odometry, link.get("map_origin_fc_enu"),
+                                      link.get("map_origin_t_fc"))
 
     def offset_errors(self, i: int, statuses: list[dict | None]) -> dict[int, dict]:
         """Per drone merged into drone i's global map: estimated offset and its error vs truth."""
         out = {}
-        truth_i = self.map_to_world(i, self.map_origin(statuses[i]))
+        truth_i = self.map_to_world(i, statuses[i])
         for vid, entry in self.merged_vehicles(statuses[i]).items():
             j = vid - 1
             if not 0 <= j < self.settings.drones or j == i:
                 continue
             est = np.array(entry["transform"], float).reshape(4, 4)
-            truth = invert(truth_i) @ self.map_to_world(j, self.map_origin(statuses[j]))
+            error_m, error_deg = acc.offset_error(est, invert(truth_i) @ self.map_to_world(j, statuses[j]))
             out[vid] = {
                 "translation_m": [float(v) for v in est[:3, 3]],
                 "yaw_deg": math.degrees(math.atan2(est[1, 0], est[0, 0])),
-                "error_m": float(np.linalg.norm(est[:3, 3] - truth[:3, 3])),
-                "error_deg": rotation_angle_deg(est[:3, :3].T @ truth[:3, :3]),
+                "error_m": error_m,
+                "error_deg": error_deg,
             }
         return out
+
+    def map_accuracy(self, i: int, grid, status: dict | None) -> dict:
+        """Occupied-cell precision/recall of a map of drone i (its frame) vs the world's ground truth
+        in the region it explored, and the odometry drift the emulator put in since its map origin."""
+        gt, gt_origin = self.world.ground_truth(0.1)
+        out = acc.map_accuracy(grid, acc.transform_points(self.map_to_world(i, status)), gt, gt_origin)
+        t0 = (((status or {}).get("link") or {}).get("map_origin_t_fc"))
+        if t0 is not None:
+            odometry = self.sim.vehicle(i).odometry
+            out["drift_m"], out["drift_deg"] = acc.drift_since(odometry, t0, self.sim.time)
+        return {k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}
 
     # ------------------------------------------------------------------------------ tear-down
     def stop(self, keep_files: bool = False) -> None:

@@ -7,6 +7,7 @@ exit, Ctrl-C included.
 
 import argparse
 import json
+import math
 import signal
 import sys
 import time
@@ -18,6 +19,7 @@ sys.path.insert(0, str(ROOT))
 from coopd.daemon import control  # noqa: E402
 from coopd.io import export_png_top, load_cmap  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
+from coopd.sharing.wire import decode_map  # noqa: E402
 from firmware_sim.swarm import Swarm, SwarmSettings  # noqa: E402
 from firmware_sim.worlds import GENERATORS  # noqa: E402
 
@@ -136,7 +138,11 @@ def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
             print(f"   drone {j + 1}: offset x {x:6.2f} y {y:6.2f} z {z:5.2f} m, "
                   f"yaw {e['yaw_deg']:7.1f} deg; "
                   f"error vs truth {e['error_m']:.2f} m, {e['error_deg']:.1f} deg")
-        drones.append({"vehicle": vid, "offsets": errors})
+        entry = {"drone": vid, "merged": len(errors), "pairs": [
+            {"peer": j + 1, "merged": j + 1 in errors,
+             **({k: round(errors[j + 1][k], 4) for k in ("error_m", "error_deg")} if j + 1 in errors else {})}
+            for j in range(n) if j != i]}
+        drones.append(entry)
         try:
             _, blob = swarm.daemons[i].request("dump-map", {"map": "global"}, timeout_s=60.0,
                                                max_blob_bytes=512 * 1024 * 1024)
@@ -145,12 +151,21 @@ def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
             grid, _ = load_cmap(cmap)
             export_png_top(grid, out / f"global_{vid}.png")
             print(f"   wrote {cmap} and {out / f'global_{vid}.png'}")
+            entry["global"] = g = swarm.map_accuracy(i, grid, s)
+            _, blob = swarm.daemons[i].request("dump-map", {"map": "local"}, timeout_s=60.0,
+                                               max_blob_bytes=512 * 1024 * 1024)
+            entry["local"] = own = swarm.map_accuracy(i, decode_map(blob)[0], s)
+            print(f"   vs ground truth: global map precision {g['precision']:.3f} recall {g['recall']:.3f} "
+                  f"(within one cell {g['precision_tol1']:.3f} / {g['recall_tol1']:.3f}); own map "
+                  f"{own['precision']:.3f} / {own['recall']:.3f}; odometry drift since the map origin "
+                  f"{own.get('drift_m', math.nan):.2f} m, {own.get('drift_deg', math.nan):.2f} deg")
         except (control.ControlError, OSError, ValueError) as e:
             print(f"   could not dump the global map: {e}")
             ok = False
     (out / "demo_report.json").write_text(json.dumps(
         {"world": args.world, "drones": n, "network": swarm.network_mode, "elapsed_s": elapsed,
-         "per_drone": drones, "statuses": statuses}, indent=1, default=str))
+         "sim_s": swarm.sim.time, "lag_resets": swarm.sim.lag_resets, "accuracy": drones,
+         "statuses": statuses}, indent=1, default=str))
     return 0 if ok else 1
 
 

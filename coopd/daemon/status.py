@@ -36,6 +36,7 @@ def build(daemon) -> dict:
             "odometry_stale": link["odometry_stale"],
             "connection": link["connection"],
             "map_origin_fc_enu": link["map_origin_fc_enu"],
+            "map_origin_t_fc": link["map_origin_t_fc"],
             "counters": link["counters"],
         },
         "pose": pose(daemon.link, link),

@@ -395,6 +395,7 @@ class VehicleLink:
             "map_origin_fc_enu": None
             if self.odometry.origin_enu is None
             else [round(float(x), 4) for x in self.odometry.origin_enu],
+            "map_origin_t_fc": self.odometry.origin_t_fc,
             "clock": None
             if est is None
             else {

@@ -45,6 +45,8 @@ class OdometryTracker:
     def __init__(self, limits: OdometryLimits = OdometryLimits()):
         self.limits = limits
         self.origin_enu: np.ndarray | None = None
+        self.origin_t_fc: float | None = None
+        """FC time of the sample that set the origin (None when the origin was restored from disk)."""
         self.counters: Counter = Counter()
         self._last: PoseSample | None = None
         self._rejected_in_row = 0
@@ -134,6 +136,7 @@ class OdometryTracker:
                 )
         if self.origin_enu is None:
             self.origin_enu = p_enu.copy()
+            self.origin_t_fc = t_fc
             log.info(
                 "map origin set at the first valid odometry sample: FC local ENU (%.3f, %.3f, %.3f) m, "
                 "t_fc=%.3f s",

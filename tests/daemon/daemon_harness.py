@@ -15,10 +15,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests" / "vehicle"))
-from sim_helpers import map_accuracy  # noqa: E402
-
 from coopd.daemon import control  # noqa: E402
+from firmware_sim.accuracy import map_accuracy  # noqa: E402
 
 PYTHON = sys.executable
 _BLOCK = 15300 + (os.getpid() % 8) * 12

@@ -7,12 +7,13 @@ import time
 
 import numpy as np
 import pytest
-from sim_helpers import map_accuracy, pose_errors, wait_until
+from sim_helpers import pose_errors, wait_until
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
 from coopd.mapping import Intrinsics, Mapper, MapperConfig, Pose
 from coopd.mapping.association import FrameAssociator
 from coopd.vehicle import LinkConfig, VehicleLink
+from firmware_sim.accuracy import map_accuracy
 from firmware_sim.odometry import NOISE_PRESETS, NoiseConfig
 from firmware_sim.simulation import Simulation
 from firmware_sim.worlds import build_world

@@ -37,6 +37,7 @@ def test_first_valid_sample_is_the_origin_and_axes_are_enu():
     assert tr.from_odometry(odo(1.0, (math.nan, 0, 0))) is None  # not valid: not the origin
     first = tr.from_odometry(odo(1.02, (10.0, 20.0, -1.0)))
     assert np.allclose(first.position, 0) and np.allclose(tr.origin_enu, [20.0, 10.0, 1.0])
+    assert tr.origin_t_fc == 1.02  # when the map frame was set: the drift it inherits is the FC's then
     s = tr.from_odometry(odo(1.04, (10.5, 20.0, -1.2)))  # 0.5 m north, 0.2 m up
     assert np.allclose(s.position, [0.0, 0.5, 0.2]) and s.t_fc == 1.04
     h = math.sqrt(0.5)

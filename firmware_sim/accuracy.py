@@ -1,0 +1,109 @@
+"""Accuracy against the world's ground truth: occupied-cell precision/recall of a map, offset errors.
+
+Pure functions over numpy arrays; a map is anything with `cells` (int8 log-odds-like values, -1 =
+unknown), `offset` (key of cells[0, 0, 0]) and `resolution` (m), as coopd's OccupancyGrid.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+OCCUPIED = 50
+"""Cell value from which a map cell counts as occupied (coopd.grid.OCCUPIED_THRESHOLD)."""
+
+_CORNERS = np.array([[x, y, z] for x in (-0.49, 0.49) for y in (-0.49, 0.49) for z in (-0.49, 0.49)])
+
+
+def overlapped_truth_cells(keys, grid_res, to_world, gt_shape, gt_origin, gt_res, chunk=100_000):
+    """For each map cell (key), the truth cell indices its 8 (slightly shrunk) corners fall in:
+    (n, 8, 3) ints and an (n, 8) in-bounds mask."""
+    keys = np.asarray(keys).reshape(-1, 3)
+    out_idx, out_ok = [], []
+    for lo in range(0, len(keys), chunk):
+        k = keys[lo : lo + chunk]
+        pts = ((k[:, None, :] + _CORNERS[None]) * grid_res).reshape(-1, 3)
+        idx = np.round((to_world(pts) - gt_origin) / gt_res).astype(np.int64).reshape(len(k), 8, 3)
+        out_idx.append(idx)
+        out_ok.append(np.all((idx >= 0) & (idx < np.array(gt_shape)), axis=2))
+    if not out_idx:
+        return np.zeros((0, 8, 3), np.int64), np.zeros((0, 8), bool)
+    return np.concatenate(out_idx), np.concatenate(out_ok)
+
+
+def map_accuracy(grid, to_world, gt, gt_origin, gt_res=0.1, threshold=OCCUPIED) -> dict:
+    """Occupied-cell precision and recall of a map against a ground-truth voxel grid.
+
+    A map cell and a truth cell match when they overlap in space (the map's cell corners, mapped to
+    the world by `to_world`, fall in the truth cell): the two grids are offset and rotated against
+    each other, so cell-index equality would be meaningless. Recall counts truth-occupied cells in
+    the explored region (overlapped by some known map cell). `*_tol1` repeat both with one truth
+    cell of slack.
+    """
+    from scipy import ndimage
+
+    cells = grid.cells
+    occ = np.argwhere(cells >= threshold) + grid.offset
+    known = np.argwhere(cells >= 0) + grid.offset
+    occ_idx, occ_ok = overlapped_truth_cells(occ, grid.resolution, to_world, gt.shape, gt_origin, gt_res)
+    kn_idx, kn_ok = overlapped_truth_cells(known, grid.resolution, to_world, gt.shape, gt_origin, gt_res)
+
+    def hits(volume, idx, ok):
+        v = np.zeros(ok.shape, bool)
+        v[ok] = volume[tuple(idx[ok].T)]
+        return v.any(axis=1)
+
+    def paint(idx, ok):
+        v = np.zeros(gt.shape, bool)
+        v[tuple(idx[ok].T)] = True
+        return v
+
+    pred_vol, known_vol = paint(occ_idx, occ_ok), paint(kn_idx, kn_ok)
+    observed = gt & known_vol
+    dil = np.ones((3, 3, 3), bool)
+    gt1, pred1 = ndimage.binary_dilation(gt, dil), ndimage.binary_dilation(pred_vol, dil)
+    return {
+        "occupied_cells": int(len(occ)),
+        "observed_truth_cells": int(observed.sum()),
+        "precision": float(hits(gt, occ_idx, occ_ok).mean()) if len(occ) else 0.0,
+        "recall": float((observed & pred_vol).sum() / max(observed.sum(), 1)),
+        "precision_tol1": float(hits(gt1, occ_idx, occ_ok).mean()) if len(occ) else 0.0,
+        "recall_tol1": float((observed & pred1).sum() / max(observed.sum(), 1)),
+    }
+
+
+def transform_points(t: np.ndarray):
+    """The function p -> R p + t of a 4x4 rigid transform, for map_accuracy's `to_world`."""
+    t = np.asarray(t, dtype=np.float64)
+    return lambda p: np.asarray(p, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
+
+
+def offset_error(estimated, truth) -> tuple[float, float]:
+    """(translation error m, rotation error deg) of an estimated 4x4 rigid transform vs the true one."""
+    est, tru = np.asarray(estimated, dtype=np.float64), np.asarray(truth, dtype=np.float64)
+    dt = float(np.linalg.norm(est[:3, 3] - tru[:3, 3]))
+    c = (np.trace(est[:3, :3].T @ tru[:3, :3]) - 1.0) / 2.0
+    return dt, math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def map_frame_in_world(odometry, origin_enu, t_origin: float | None = None) -> np.ndarray:
+    """4x4 truth of a map frame in the world: the vehicle's reporting frame, as the estimator's drift
+    had moved it at t_origin (when the map origin was taken), translated to the origin.
+
+    A map frame set at time t0 inherits the drift accumulated since boot; the drift-free frame
+    (t_origin None) is right only for maps started at t = 0."""
+    rd, pd = odometry.drift(t_origin) if t_origin is not None else (np.eye(3), np.zeros(3))
+    out = np.eye(4)
+    out[:3, :3] = odometry.frame_rot @ rd.T
+    origin = np.asarray(origin_enu if origin_enu is not None else np.zeros(3), dtype=np.float64)
+    out[:3, 3] = odometry.frame_rot @ rd.T @ (origin - pd) + odometry.origin
+    return out
+
+
+def drift_since(odometry, t_origin: float, t_end: float) -> tuple[float, float]:
+    """(m, deg) the estimate's frame drifted between the map origin and t_end: the emulator's share
+    of a map's error (an accuracy limit, not a bug)."""
+    p0 = odometry.drift(t_origin)[1].copy()
+    p1 = odometry.drift(t_end)[1]
+    return float(np.linalg.norm(p1 - p0)), abs(math.degrees(odometry.drift_yaw_rate * (t_end - t_origin)))
