@@ -218,7 +218,9 @@ class Merger:
                     self.counters["unchanged"] += 1  # merging is deterministic: the same global map again
                 else:
                     if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
-                        self._merged_inputs = inputs
+                        # with nothing left out, peers' results no longer count (inputs() drops them)
+                        done_with_all = inputs is not None and not self._unmerged
+                        self._merged_inputs = (*inputs[:2], ()) if done_with_all else inputs
                     not_before = time.monotonic() + self.min_gap_s
             with self._cv:
                 self._completed = max(self._completed, ticket)

@@ -390,3 +390,36 @@ def test_received_maps_merge_at_most_once_per_gap_but_merge_now_at_once():
     finally:
         m.stop()
         runner.join(5)
+
+
+def test_peers_results_stop_counting_once_every_map_is_merged():
+    """A distributed merger that left a map out merges again when a peer's result arrives; once
+    everything is merged, further results (peers publishing theirs) do not trigger merges."""
+    calls = []
+    accept = {"now": False}
+
+    def merge_all(reference, others, params, hints=None, hints_only=frozenset(), recheck=frozenset()):
+        calls.append(len(others))
+        return SimpleNamespace(global_map=reference.copy(), rounds=1, results=[
+            SimpleNamespace(accepted=accept["now"], transform=np.eye(4), score=1.0, reason="test")
+            for _ in others])
+
+    results = []
+    budget = MemoryBudget(64 << 20, baseline_bytes=0)
+    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=0.2,
+               merge_fn=merge_all, local_version=lambda: 3, distributed=True,
+               peer_results=lambda: list(results))
+    runner = threading.Thread(target=m.run, daemon=True)
+    runner.start()
+    try:
+        assert wait_until(lambda: m.counters["unchanged"] >= 2, 5.0) and calls == [1]  # map 2 left out
+        accept["now"] = True
+        results.append(SimpleNamespace(vehicle_id=2, version=1, edges=()))
+        assert wait_until(lambda: len(calls) == 2, 5.0)  # a new result while a map is left out
+        unchanged = m.counters["unchanged"]
+        results.append(SimpleNamespace(vehicle_id=3, version=1, edges=()))
+        assert wait_until(lambda: m.counters["unchanged"] >= unchanged + 3, 5.0)
+        assert len(calls) == 2  # everything merged: results no longer count
+    finally:
+        m.stop()
+        runner.join(5)
