@@ -310,10 +310,10 @@ class Merger:
             return "deferred", f"over the memory budget: {e}"
         self._count(result)
         self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
-        for k, (vid, r, size) in enumerate(zip(vids, result.results, sizes, strict=True)):
+        for vid, r, size in zip(vids, result.results, sizes, strict=True):
             if getattr(r, "method", "full") == "full" or (r.accepted and vid not in self._searched_at):
                 self._searched_at[vid] = size  # a peer's transform is searched for here once maps grew
-            if not r.accepted and (k in recheck or str(r.reason).startswith("ambiguous")):
+            if not r.accepted and str(r.reason).startswith("ambiguous"):
                 self._accepted.pop(vid, None)  # no warm start from a transform the maps now doubt
         self._publish(self._remember([m for m, _ in infos], result.results, local_version))
         if not self.budget.reserve("global", merged.size):

@@ -198,7 +198,7 @@ def test_a_map_merged_on_small_maps_is_searched_again_once_grown_and_kept_if_the
     assert all(_close(np.reshape(o["transform"], (4, 4)), _truth(chain, 0, v)) for v, o in m.offsets.items())
 
 
-def test_recheck_does_not_keep_a_hint_the_search_on_grown_maps_refuses(chain, monkeypatch):
+def test_recheck_falls_back_to_the_hint_when_the_search_refuses(chain, monkeypatch):
     from coopd.merging import multi
     from coopd.merging.hints import Hint
 
@@ -212,7 +212,8 @@ def test_recheck_does_not_keep_a_hint_the_search_on_grown_maps_refuses(chain, mo
     monkeypatch.setattr(multi, "merge_prepared", refusing_search)
     r = merge_all(chain[0].grid, [chain[1].grid], hints=[[Hint(truth, "own")]], recheck=frozenset({0}))
     assert searches == [1] and r.full_registrations == 1
-    assert not r.results[0].accepted and r.results[0].method == "full"
+    assert r.results[0].accepted and r.results[0].method == "hint:own"
+    assert _close(r.results[0].transform, truth)
 
 
 def test_recheck_drops_the_old_transform_when_the_grown_maps_are_ambiguous(chain, monkeypatch):
