@@ -311,10 +311,8 @@ class Merger:
         self._count(result)
         self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
         for vid, r, size in zip(vids, result.results, sizes, strict=True):
-            if getattr(r, "method", "full") == "full" or (r.accepted and vid not in self._searched_at):
-                self._searched_at[vid] = size  # a peer's transform is searched for here once maps grew
-            if not r.accepted and str(r.reason).startswith("ambiguous"):
-                self._accepted.pop(vid, None)  # no warm start from a transform the maps now doubt
+            if getattr(r, "method", "full") == "full":
+                self._searched_at[vid] = size
         self._publish(self._remember([m for m, _ in infos], result.results, local_version))
         if not self.budget.reserve("global", merged.size):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
@@ -352,9 +350,8 @@ class Merger:
         return frozenset(out)
 
     def _grown(self, vids: list[int], sizes: list[tuple[int, int]]) -> frozenset[int]:
-        """Input maps merged before (by our search or a peer's transform) at sizes RECHECK_GROWTH
-        times smaller: a transform found on early partial maps (where a mirror fit can win) is
-        searched for again, and dropped if the grown maps are ambiguous."""
+        """Input maps merged before whose full search ran on maps RECHECK_GROWTH times smaller: a
+        transform found on early partial maps (where a mirror fit can win) is searched for again."""
         out = set()
         for k, (vid, (local, other)) in enumerate(zip(vids, sizes, strict=True)):
             at = self._searched_at.get(vid)

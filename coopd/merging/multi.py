@@ -67,9 +67,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
     the global map grew (a hint of a map that overlaps only a later one fails against the reference
     alone); a map's full search runs only when none of its hints validates now, and never for the
     maps in hints_only (their full search is left to a peer whose result will come as a hint). Maps in
-    recheck get the full search first and fall back to their hints only if it refused for another
-    reason than ambiguity: a transform found on small early maps is searched for again once the maps
-    have grown, and dropped if they now fit two ways."""
+    recheck get the full search first and fall back to their hints only if it does not accept: a
+    transform found on small early maps is searched for again once the maps have grown."""
     params = params or coopd_params()
     hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
     if len(hints) != len(others):
@@ -142,9 +141,6 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
             r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm)
             full += 1
             unchecked.discard(i)
-            if i in recheck and r.reason.startswith("ambiguous"):
-                # the grown maps fit two ways: the old transform is one of them, so no hint decides
-                dead.update((i, k) for k in range(len(hints[i])))
             finish(i, r, tm, t0)
         pending = [i for i in pending if i not in merged]
         if len(merged) == before:
