@@ -46,8 +46,6 @@ from coopd.sharing.wire import (
 log = logging.getLogger("coopd.daemon")
 
 NOT_AVAILABLE = "merging: not available in this build"
-RECHECK_GROWTH = 1.5
-"""A merged map is registered from scratch again once its or our map grew this much in cells."""
 SCRATCH_BYTES_PER_CELL = 12
 """Merge scratch budgeted per input cell (local + received): the local snapshot and decoded
 received maps (1 B each) plus merge_all's own peak, measured with tracemalloc at 5.7-8.5 B per
@@ -124,9 +122,6 @@ class Merger:
         self._first_seen: dict[int, float] = {}
         self._unmerged: set[int] = set()
         self._deferring = False
-        self._searched_at: dict[int, tuple[int, int]] = {}
-        """Vehicle id -> (local cells, its map's cells) at its last full search: once either has grown
-        RECHECK_GROWTH times, the full search runs again before the own hint (recheck)."""
         """The last merge left a map's full search to a peer: merge again on the period even if
         nothing changed, so that the search runs here once defer_full_s is over."""
         """Vehicles whose maps the last merge left out (refused or deferred)."""
@@ -290,11 +285,9 @@ class Merger:
                 hints = self._hints(vids)
                 hints_only = self._deferred(vids, hints)
                 self._deferring = bool(hints_only)
-                sizes = [(local_grid.size, info.cells) for _, info in infos]
-                recheck = self._grown(vids, sizes)
-                if hints_only or recheck:
+                if hints_only:
                     result = self.merge_fn(local_grid, others, self.params, hints=hints,
-                                           hints_only=hints_only, recheck=recheck)
+                                           hints_only=hints_only)
                 elif any(hints):
                     result = self.merge_fn(local_grid, others, self.params, hints=hints)
                 else:
@@ -310,9 +303,6 @@ class Merger:
             return "deferred", f"over the memory budget: {e}"
         self._count(result)
         self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
-        for vid, r, size in zip(vids, result.results, sizes, strict=True):
-            if getattr(r, "method", "full") == "full":
-                self._searched_at[vid] = size
         self._publish(self._remember([m for m, _ in infos], result.results, local_version))
         if not self.budget.reserve("global", merged.size):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
@@ -346,17 +336,6 @@ class Merger:
         for k, vid in enumerate(vids):
             first = self._first_seen.setdefault(vid, now)
             if vid not in self._accepted and not hints[k] and now - first < self.defer_full_s:
-                out.add(k)
-        return frozenset(out)
-
-    def _grown(self, vids: list[int], sizes: list[tuple[int, int]]) -> frozenset[int]:
-        """Input maps merged before whose full search ran on maps RECHECK_GROWTH times smaller: a
-        transform found on early partial maps (where a mirror fit can win) is searched for again."""
-        out = set()
-        for k, (vid, (local, other)) in enumerate(zip(vids, sizes, strict=True)):
-            at = self._searched_at.get(vid)
-            if vid in self._accepted and at is not None and (
-                    local >= RECHECK_GROWTH * at[0] or other >= RECHECK_GROWTH * at[1]):
                 out.add(k)
         return frozenset(out)
 

@@ -59,16 +59,13 @@ class _World:
 
 def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
               params: MergeParams | None = None, hints: list[list[Hint]] | None = None,
-              hints_only: frozenset[int] = frozenset(), recheck: frozenset[int] = frozenset()
-              ) -> GlobalMergeResult:
+              hints_only: frozenset[int] = frozenset()) -> GlobalMergeResult:
     """Merge others into a copy of reference, retrying failures while the global map keeps growing.
 
     hints[i]: candidate transforms for others[i] (hints.py). Hints go first and are retried whenever
     the global map grew (a hint of a map that overlaps only a later one fails against the reference
     alone); a map's full search runs only when none of its hints validates now, and never for the
-    maps in hints_only (their full search is left to a peer whose result will come as a hint). Maps in
-    recheck get the full search first and fall back to their hints only if it does not accept: a
-    transform found on small early maps is searched for again once the maps have grown."""
+    maps in hints_only (their full search is left to a peer whose result will come as a hint)."""
     params = params or coopd_params()
     hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
     if len(hints) != len(others):
@@ -92,8 +89,6 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         tm["total"] = time.perf_counter() - t0
         results[i] = replace(r, timings=tm)
 
-    unchecked = set(recheck)
-    """Maps of recheck whose full search has not run yet: their hints wait for it."""
     dead: set[tuple[int, int]] = set()
     """(map, hint position) refused for disagreeing with the global map: not tried again."""
     tried_at: dict[int, int] = {}
@@ -104,7 +99,7 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         progress = True
         while progress:
             progress = False
-            for i in _order([i for i in todo if i not in merged and i not in unchecked], hints):
+            for i in _order([i for i in todo if i not in merged], hints):
                 if tried_at.get(i) == len(merged):
                     continue
                 tried_at[i] = len(merged)
@@ -140,7 +135,6 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
             t0 = time.perf_counter()
             r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm)
             full += 1
-            unchecked.discard(i)
             finish(i, r, tm, t0)
         pending = [i for i in pending if i not in merged]
         if len(merged) == before:

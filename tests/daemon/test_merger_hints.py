@@ -182,35 +182,3 @@ def test_command_line_switches_distributed_merging_off():
 
     assert build_config(parse_args(["--no-config"])).merging.distributed is True
     assert build_config(parse_args(["--no-config", "--no-distributed"])).merging.distributed is False
-
-
-@pytest.mark.slow
-def test_a_map_merged_on_small_maps_is_searched_again_once_grown_and_kept_if_the_search_refuses(chain):
-    m = _merger(chain)
-    assert m.merge_once()["outcome"] == "done" and m.counters["full_registrations"] >= 2
-    full = m.counters["full_registrations"]
-    assert m.merge_once()["outcome"] == "done"  # same sizes: own hints, no search
-    assert m.counters["full_registrations"] == full and m.counters["hinted_own"] == 2
-    m._searched_at = {v: (s[0] // 2, s[1]) for v, s in m._searched_at.items()}  # as if our map doubled
-    assert m.merge_once()["outcome"] == "done"
-    assert m.counters["full_registrations"] >= full + 2  # both searched again, from scratch
-    assert all(o["accepted"] for o in m.offsets.values())
-    assert all(_close(np.reshape(o["transform"], (4, 4)), _truth(chain, 0, v)) for v, o in m.offsets.items())
-
-
-def test_recheck_falls_back_to_the_hint_when_the_search_refuses(chain, monkeypatch):
-    from coopd.merging import multi
-    from coopd.merging.hints import Hint
-
-    truth = _truth(chain, 0, 1)
-    searches = []
-
-    def refusing_search(*args, **kw):
-        searches.append(1)
-        return multi.MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0, "ambiguous (test)")
-
-    monkeypatch.setattr(multi, "merge_prepared", refusing_search)
-    r = merge_all(chain[0].grid, [chain[1].grid], hints=[[Hint(truth, "own")]], recheck=frozenset({0}))
-    assert searches == [1] and r.full_registrations == 1
-    assert r.results[0].accepted and r.results[0].method == "hint:own"
-    assert _close(r.results[0].transform, truth)
