@@ -52,6 +52,16 @@ class SharingConfig:
     transport: TransportSettings = field(default_factory=TransportSettings)
 
 
+def _notify(callback: Callable[[int, int], None] | None, name: str, summary: MessageSummary) -> None:
+    """Tell a consumer what was stored; its bug must not fail the transfer (logged instead)."""
+    if callback is None:
+        return
+    try:
+        callback(summary.vehicle_id, summary.version)
+    except Exception:
+        log.exception("%s callback failed for vehicle %d v%d", name, summary.vehicle_id, summary.version)
+
+
 def wire_inspect(data) -> MessageSummary:
     """inspect() for real map messages (coopd.sharing.wire)."""
     from . import wire
@@ -252,12 +262,7 @@ class SharingService:
             except queue.Empty:
                 pass
             self.arrivals.put_nowait((summary.vehicle_id, summary.version))
-        if self._on_map is not None:
-            try:
-                self._on_map(summary.vehicle_id, summary.version)
-            except Exception:  # the map is stored; a consumer's bug must not fail the transfer
-                log.exception("on_map callback failed for vehicle %d v%d", summary.vehicle_id,
-                              summary.version)
+        _notify(self._on_map, "on_map", summary)
         if self.config.relay:
             with self._update:
                 self._update.notify_all()
@@ -286,12 +291,7 @@ class SharingService:
                             arrival.address, kind="result")
         log.info("merge result of vehicle %d v%d received (%d edges)", summary.vehicle_id,
                  summary.version, len(message.edges))
-        if self._on_result is not None:
-            try:
-                self._on_result(summary.vehicle_id, summary.version)
-            except Exception:  # the result is stored; a consumer's bug must not fail the transfer
-                log.exception("on_result callback failed for vehicle %d v%d", summary.vehicle_id,
-                              summary.version)
+        _notify(self._on_result, "on_result", summary)
         return mtp.ACK_OK
 
     # ------------------------------------------------------------------ discovery

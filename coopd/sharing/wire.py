@@ -27,7 +27,8 @@ MSG_COOPD_MAP = 1
 MSG_MERGE_RESULT = 2
 """Merge results: validated transforms between vehicles' map frames (distributed merging)."""
 MSG_PEER_HELLO = 3
-"""Reserved: peer hello / capability exchange incl. supported encodings (not implemented yet)."""
+"""Reserved number for a peer hello / capability exchange (supported encodings); coopd sends none
+and refuses one with UnknownMessageType, so that a future use cannot be misread by this version."""
 MTP_MARKER = -128
 """Byte 0 of every MTP control frame; never a message type."""
 
@@ -62,7 +63,7 @@ class MessageVersionError(WireError):
 
 
 class UnknownMessageType(WireError):
-    """A message type this coopd does not know (or one that is reserved, not implemented)."""
+    """A message type this coopd does not know, or a reserved number it refuses."""
 
 
 @dataclass(frozen=True)
@@ -233,7 +234,7 @@ def peek(data) -> MessageInfo:
     if msg_type == MSG_MERGE_RESULT:
         raise UnknownMessageType("message type 2 is a merge result, not a map (decode_merge_result)")
     if msg_type == MSG_PEER_HELLO:
-        raise UnknownMessageType(f"message type {msg_type} is reserved and not implemented by this coopd")
+        raise UnknownMessageType(f"message type {msg_type} is reserved: this coopd refuses it")
     raise UnknownMessageType(f"unknown message type {msg_type}")
 
 
