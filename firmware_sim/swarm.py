@@ -387,8 +387,15 @@ class Swarm:
 
     def merge_until_converged(self, limit_s: float = 90.0,
                               progress: Callable[[], None] | None = None) -> bool:
-        """Merge on every daemon until each has merged every other map or limit_s passed."""
+        """Merge on every daemon until each has merged every other map or limit_s passed.
+
+        Two merges run everywhere first, as the daemons' own periodic merges would within two
+        periods: one on the maps as they are now, one more that sees them settled (merger.py
+        searches a map once more on the final maps when its transform was decided on smaller ones)."""
         deadline = time.monotonic() + limit_s
+        for _ in range(2):
+            self.check_alive()
+            self.merge_everywhere(timeout_s=max(5.0, deadline - time.monotonic()))
         while True:
             self.check_alive()
             if self.converged():

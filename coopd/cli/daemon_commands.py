@@ -165,10 +165,13 @@ def format_status(s: dict) -> str:
                 "merge work",
                 f"{mg['full_registrations']} full registrations, {mg.get('hinted', '-')} hinted "
                 f"({mg.get('hinted_peer', '-')} by peers' results), {mg.get('hint_rejected', '-')} hints "
-                f"refused, {mg.get('cpu_s', '-')} s CPU"
+                f"refused, {mg.get('rechecks', 0)} rechecks, {mg.get('cpu_s', '-')} s CPU"
                 + ("" if mg.get("distributed", True) else ", not distributed"),
             )
         )
+    if mg.get("contested"):
+        rows.append(("contested", "maps that fit ours two ways, left out: "
+                     + ", ".join(f"vehicle {v}" for v in mg["contested"])))
     mem = s.get("memory") or {}
     if mem:
         entries = ", ".join(f"{k} {_mib(v)}" for k, v in (mem.get("entries") or {}).items())

@@ -255,6 +255,10 @@ class MergingConfig:
         "distributed: seconds a map's full search waits for a lower vehicle id's result; 0: never",
         30.0, _between(0.0, 3600.0, " s"),
     )
+    recheck_growth: float = _key(
+        "search a merged map again, its transform competing, once the pair's known cells grew this much",
+        1.3, _between(1.05, 100.0, "x"),
+    )
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,9 @@ So every accepted transform is kept per vehicle and handed to the next merge as 
 start, coopd.merging.hints): ICP + validation instead of the full search. With `distributed`, peers'
 published merge results are hints too, and our own accepted transforms are published
 (publish_results) for them (thesis §1, §10.4). merge_fn gets hints=... only when there are any.
+A hint is judged alone, so once a pair's maps grew (recheck_growth) or stopped growing, the map is
+searched again with its hints competing (contest=...): a fit picked on small early maps of a
+symmetric building does not live on. A search that finds two fits leaves the map out (contested).
 """
 
 import logging
@@ -46,6 +49,10 @@ from coopd.sharing.wire import (
 log = logging.getLogger("coopd.daemon")
 
 NOT_AVAILABLE = "merging: not available in this build"
+SETTLED_GROWTH = 1.01
+"""A pair whose known cells grew less than this since the last merge has settled (the flight is over)."""
+SETTLED_RECHECK = 1.05
+"""A settled pair decided on maps this much smaller is searched once more, on the final maps."""
 SCRATCH_BYTES_PER_CELL = 12
 """Merge scratch budgeted per input cell (local + received): the local snapshot and decoded
 received maps (1 B each) plus merge_all's own peak, measured with tracemalloc at 5.7-8.5 B per
@@ -92,6 +99,7 @@ class Merger:
         local_version: Callable[[], int] | None = None,
         settle_s: float = 0.0,
         defer_full_s: float = 0.0,
+        recheck_growth: float = 1.3,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -103,7 +111,8 @@ class Merger:
         self.params = params
         self.limits = limits
         self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0, "unchanged": 0,
-                         "full_registrations": 0, "hinted_own": 0, "hinted_peer": 0, "hint_rejected": 0}
+                         "full_registrations": 0, "hinted_own": 0, "hinted_peer": 0, "hint_rejected": 0,
+                         "rechecks": 0}
         self.cpu_s = 0.0
         """CPU time of the merging thread inside merges (time.thread_time): the work the bench sums."""
         self.distributed = distributed
@@ -119,6 +128,16 @@ class Merger:
         self.defer_full_s = defer_full_s
         """Distributed: a map's full search waits this long for the swarm's lowest vehicle id to
         publish it (then validating its result is enough); 0: never wait."""
+        self.recheck_growth = recheck_growth
+        """A merged map is searched again, its known transforms competing, once the known cells of it
+        and our map grew this much since it was last decided: a transform accepted on small early maps
+        of a symmetric building (a 180-degree flip, a slide along a corridor) is not kept for good."""
+        self._decided_at: dict[int, int] = {}
+        """Vehicle id -> known cells of its map and ours when its transform was last decided."""
+        self._last_size: dict[int, int] = {}
+        """Vehicle id -> known cells of its map and ours at the last merge (to see the maps settle)."""
+        self._contested: set[int] = set()
+        """Vehicles whose last full search found two fits (ambiguous): their hints only compete."""
         self._first_seen: dict[int, float] = {}
         self._unmerged: set[int] = set()
         self._deferring = False
@@ -285,13 +304,18 @@ class Merger:
                 hints = self._hints(vids)
                 hints_only = self._deferred(vids, hints)
                 self._deferring = bool(hints_only)
+                local_known = local_grid.counts().known
+                sizes = [local_known + g.counts().known for g in others]
+                contest = self._to_contest(vids, hints, sizes)
+                kwargs = {}
+                if any(hints):
+                    kwargs["hints"] = hints
                 if hints_only:
-                    result = self.merge_fn(local_grid, others, self.params, hints=hints,
-                                           hints_only=hints_only)
-                elif any(hints):
-                    result = self.merge_fn(local_grid, others, self.params, hints=hints)
-                else:
-                    result = self.merge_fn(local_grid, others, self.params)
+                    kwargs["hints_only"] = hints_only
+                if contest:
+                    kwargs["contest"] = contest
+                    self.counters["rechecks"] += len(contest)
+                result = self.merge_fn(local_grid, others, self.params, **kwargs)
                 del others
                 merged = result.global_map
                 offsets = {}
@@ -302,6 +326,7 @@ class Merger:
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
         self._count(result)
+        self._decide(vids, result.results, sizes)
         self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
         self._publish(self._remember([m for m, _ in infos], result.results, local_version))
         if not self.budget.reserve("global", merged.size):
@@ -310,9 +335,11 @@ class Merger:
         version = (self._global[1].version + 1) if self._global is not None else 1
         self._set_global((merged, MapMeta(self.vehicle_id, version, time.time())))
         accepted = [v for v, o in offsets.items() if o["accepted"]]
+        how = ", ".join(f"{v} {o['method']}{' rechecked' if k in contest else ''}"
+                        for k, (v, o) in enumerate(offsets.items()) if o["accepted"] or k in contest)
         return "done", (
             f"{len(accepted)} of {len(infos)} received maps merged {accepted} (local v{local_version}, "
-            f"{result.rounds} rounds); global {'x'.join(map(str, merged.shape))} cells"
+            f"{result.rounds} rounds{'; ' + how if how else ''}); global {'x'.join(map(str, merged.shape))} cells"
         )
 
     def _hints(self, vids: list[int]) -> list[list]:
@@ -338,6 +365,41 @@ class Merger:
             if vid not in self._accepted and not hints[k] and now - first < self.defer_full_s:
                 out.add(k)
         return frozenset(out)
+
+    def _to_contest(self, vids: list[int], hints: list[list], sizes: list[int]) -> frozenset[int]:
+        """Input maps whose hints compete in a full search this time: contested ones; those whose
+        known cells (theirs + ours) grew recheck_growth times since their last decision; and, once
+        the pair stopped growing (SETTLED_GROWTH), those decided on maps SETTLED_RECHECK smaller, so
+        the transform kept after the flight is judged on the final maps."""
+        out = set()
+        for k, vid in enumerate(vids):
+            if not hints[k]:
+                continue
+            decided = self._decided_at.get(vid, sizes[k])
+            settled = (sizes[k] < SETTLED_GROWTH * self._last_size.get(vid, 0)
+                       and sizes[k] > SETTLED_RECHECK * decided)
+            if vid in self._contested or sizes[k] >= self.recheck_growth * decided or settled:
+                out.add(k)
+        return frozenset(out)
+
+    def _decide(self, vids: list[int], results: list, sizes: list[int]) -> None:
+        """Record how each map was decided: a full search sets the size mark and settles or raises
+        a contest (an ambiguous search also drops our own transform of it); a first hint sets the mark."""
+        for k, (vid, r) in enumerate(zip(vids, results, strict=True)):
+            self._last_size[vid] = sizes[k]
+            method = getattr(r, "method", "full")
+            if method == "full":
+                self._decided_at[vid] = sizes[k]
+                if r.accepted:
+                    self._contested.discard(vid)
+                elif str(r.reason).startswith("ambiguous"):
+                    if vid in self._accepted or vid not in self._contested:
+                        log.warning("vehicle %d: its map fits ours two ways (%s); left out until one "
+                                    "fit wins", vid, r.reason)
+                    self._contested.add(vid)
+                    self._accepted.pop(vid, None)
+            elif r.accepted:
+                self._decided_at.setdefault(vid, sizes[k])
 
     def on_peer_result(self) -> None:
         """A peer's merge result arrived: merge again if it may bring a map we left out."""
@@ -421,5 +483,6 @@ class Merger:
             "distributed": self.distributed,
             "last": self.last,
             "offsets": {str(k): v for k, v in self.offsets.items()},
+            "contested": sorted(self._contested),
             "global_version": None if self._global is None else self._global[1].version,
         }

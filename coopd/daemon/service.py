@@ -203,6 +203,7 @@ class Daemon:
             local_version=lambda: self.mapper.version,
             settle_s=min(config.sharing.scan_period_s, MERGE_MIN_GAP_S),
             defer_full_s=config.merging.defer_full_s,
+            recheck_growth=config.merging.recheck_growth,
         )
         self.control = ControlServer(
             config.daemon.control_socket,

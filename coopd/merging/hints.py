@@ -15,6 +15,9 @@ provenance, so peer hints arrive only over swarm-key-authenticated transfers (do
 A hint is also refused when ICP moved it far (HINT_MAX_SHIFT_M, HINT_MAX_TURN_DEG): then it was not
 the transform it claimed to be, and the search decides. And when two hints of one map propose
 distinct transforms that both validate, none is taken (try_hints): the full search decides.
+A lone wrong hint can still validate (the mirror fit of a near-symmetric building does); the daemon
+therefore sends a merged map through the full search again once the maps grew, its hints competing
+there as hypotheses (merge_all contest, coopd/daemon/merger.py).
 """
 
 from dataclasses import dataclass, replace

@@ -59,13 +59,17 @@ class _World:
 
 def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
               params: MergeParams | None = None, hints: list[list[Hint]] | None = None,
-              hints_only: frozenset[int] = frozenset()) -> GlobalMergeResult:
+              hints_only: frozenset[int] = frozenset(),
+              contest: frozenset[int] = frozenset()) -> GlobalMergeResult:
     """Merge others into a copy of reference, retrying failures while the global map keeps growing.
 
     hints[i]: candidate transforms for others[i] (hints.py). Hints go first and are retried whenever
     the global map grew (a hint of a map that overlaps only a later one fails against the reference
     alone); a map's full search runs only when none of its hints validates now, and never for the
-    maps in hints_only (their full search is left to a peer whose result will come as a hint)."""
+    maps in hints_only (their full search is left to a peer whose result will come as a hint).
+    The maps in contest are not merged by a hint alone: their full search runs and their hints
+    compete with its hypotheses under the runner-up margin (a transform accepted on small early maps
+    of a symmetric building is checked against the alternatives once the maps grew)."""
     params = params or coopd_params()
     hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
     if len(hints) != len(others):
@@ -99,7 +103,7 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         progress = True
         while progress:
             progress = False
-            for i in _order([i for i in todo if i not in merged], hints):
+            for i in _order([i for i in todo if i not in merged and i not in contest], hints):
                 if tried_at.get(i) == len(merged):
                     continue
                 tried_at[i] = len(merged)
@@ -126,14 +130,15 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         while True:
             run_hints(pending)
             todo = [i for i in _order(pending, hints)
-                    if i not in merged and i not in searched and i not in hints_only]
+                    if i not in merged and i not in searched and (i not in hints_only or i in contest)]
             if not todo:
                 break
             i = todo[0]
             searched.add(i)
             tm = {}
             t0 = time.perf_counter()
-            r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm)
+            known = [t for t in (resolve(h, merged) for h in hints[i]) if t is not None] if i in contest else []
+            r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm, known)
             full += 1
             finish(i, r, tm, t0)
         pending = [i for i in pending if i not in merged]

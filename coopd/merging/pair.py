@@ -160,8 +160,9 @@ def distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: fl
 
 
 def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
-                   tm: dict | None = None) -> MergeResult:
-    """merge_pair on prepared maps."""
+                   tm: dict | None = None, known: list[np.ndarray] = ()) -> MergeResult:
+    """merge_pair on prepared maps. known: transforms found before (e.g. the last accepted one) that
+    compete with the search's hypotheses on equal terms."""
     tm = {} if tm is None else tm
     complete(a, params, tm)
     complete(b, params, tm)
@@ -177,13 +178,14 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
         cands += _feature_candidates(a, b, params, tm)
     t0 = time.perf_counter()
     if params.refine and len(cands) > params.refine_candidates:
-        coarse = [agreement(a.summary, b.summary, c.transform).support() for c in cands]
+        coarse = [agreement(a.summary, b.summary, c.transform).support(params.conflict_weight) for c in cands]
         cands = [cands[i] for i in np.argsort(coarse)[::-1][: params.refine_candidates]]
+    cands += [Candidate(np.asarray(t, dtype=np.float64), 0, "given") for t in known]  # always refined
     scored: list[tuple[float, Agreement, Candidate]] = []
     for c in cands:
         c = _refined(a, b, c, params)
         ag = agreement(a.summary, b.summary, c.transform)
-        scored.append((ag.support(), ag, c))
+        scored.append((ag.support(params.conflict_weight), ag, c))
     tm["validate"] = time.perf_counter() - t0
     if not scored:
         return MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0, "no hypothesis (no correspondences)",

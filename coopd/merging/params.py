@@ -94,7 +94,17 @@ class MergeParams:
     """Agreement of overlapping known cells: agree / (agree + occupied-vs-free conflicts). Real flight
     maps carry drift: correct transforms score 0.94-1.0 there (0.977-0.988 in the daemons' demo
     maps); wrong ones up to 0.86 on the synthetic set and 0.91 (a 0.8 m slide along the racetrack)
-    on real maps, but up to 0.96 in symmetric buildings, which min_margin rejects (docs/merging.md)."""
+    on real maps, but 0.95-0.99 in symmetric buildings: the score alone cannot tell, the ranking
+    by support among distinct fits does (conflict_weight, min_margin)."""
+    conflict_weight: float = 20.0
+    """Support = agreements - conflict_weight * conflicts: ranks hypotheses and sets the margin.
+    A conflict (a wall where the other map saw through) is strong evidence, an agreement weak: in
+    symmetric buildings the mirror or corridor-shifted fit of the drones' maps overlaps more than the
+    true one (their routes are symmetric too) but conflicts at 1-4 % of its agreements against
+    0.2-2 % for the truth. On 160 searches over snapshots of daemon flight maps (hospital and
+    small_house; tests/merging/test_recheck.py holds one pair) a weight of 3 accepted the truth 11
+    times, 20 accepted it 74 times; both accepted a wrong fit on small early maps about as often
+    (43, 46), which the daemon's rechecks of grown maps repair (docs/merging.md)."""
     min_agreement: int = 600
     """Occupied cells of either map that land on the other's occupied surface."""
     min_overlap: float = 0.2
@@ -102,9 +112,7 @@ class MergeParams:
     other map at its border agrees everywhere it overlaps, but overlaps little."""
     min_margin: float = 0.15
     """A distinct runner-up (> 5 deg or > 1 m away) must stay below (1 - min_margin) of the best
-    support (agree - 3 conflicts): on real maps a 180-degree flip of a symmetric corridor reaches
-    0.80-0.99 of the true transform's support; in the daemons' small_house demo maps the correct
-    transform leads its runner-up by 0.19-0.23 (0.24 refused every one of those merges)."""
+    support: two fits that explain the maps about as well leave the choice to later, larger maps."""
     # --- multi-map (§8, Figure 35)
     max_rounds: int = 3
 

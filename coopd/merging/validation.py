@@ -108,8 +108,8 @@ class Agreement:
     def score(self) -> float:
         return self.agree / max(1, self.agree + self.conflicts)
 
-    def support(self, conflict_weight: float = 3.0) -> float:
-        """Ranking value: agreements minus weighted conflicts."""
+    def support(self, conflict_weight: float) -> float:
+        """Ranking value: agreements minus weighted conflicts (MergeParams.conflict_weight)."""
         return self.agree - conflict_weight * self.conflicts
 
 

@@ -44,7 +44,8 @@ STATUS = {
         }
     ],
     "merges": {"done": 10, "failed": 1, "deferred": 2, "full_registrations": 3, "hinted": 7, "hinted_own": 5,
-               "hinted_peer": 2, "hint_rejected": 1, "cpu_s": 4.25, "distributed": True},
+               "hinted_peer": 2, "hint_rejected": 1, "rechecks": 2, "cpu_s": 4.25, "distributed": True,
+               "contested": [5]},
     "memory": {
         "budget_bytes": 512 << 20,
         "rss_bytes": 200 << 20,
@@ -107,7 +108,8 @@ def test_status_table_and_json(daemon, capsys):
     assert "20 x 16 x 8 = 2560 cells at 0.1 m, 1900 known (74.2 %), version 41" in out
     assert "1234 in, 12 dropped, 3 rejected" in out
     assert "10 done, 1 failed, 2 deferred" in out
-    assert "3 full registrations, 7 hinted (2 by peers' results), 1 hints refused, 4.25 s CPU\n" in out
+    assert "3 full registrations, 7 hinted (2 by peers' results), 1 hints refused, 2 rechecks, 4.25 s CPU\n" in out
+    assert "contested   maps that fit ours two ways, left out: vehicle 5\n" in out
     assert "RSS 200.0 MiB of 512.0 MiB budget" in out and "2 reservations refused" in out
     assert "nice 0 (asked -5: EPERM)" in out and "nice 10\n" in out
     assert main(["status", "--json", "--socket", daemon]) == 0

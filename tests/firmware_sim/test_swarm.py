@@ -77,8 +77,7 @@ def test_two_drones_share_merge_and_leave_nothing_behind():
     assert not workdir.exists()
     assert our_namespaces() == []
     assert all(not d.running() for d in swarm.daemons)
-    if wrong:  # every other check above passed; this one is the open defect of issue #7
-        pytest.xfail(f"known defect (issue #7, docs/accuracy.md): wrong merge accepted {wrong}")
+    assert not wrong, f"merged off the truth (> 0.3 m or 3 deg): {wrong}"
 
 
 @pytest.mark.slow

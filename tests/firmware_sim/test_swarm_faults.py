@@ -247,8 +247,7 @@ def test_fault_schedule_during_one_flight():
         record["offset errors (m, deg)"] = errors
         record[f"peak RSS MiB (budget {MEMORY_MB})"] = within_budget(statuses)
         assert [d.starts for d in swarm.daemons] == [2, 1, 1]
-        if wrong:  # every fault check passed; this one is the open merging defect of issue #7
-            pytest.xfail(f"known defect (issue #7, docs/accuracy.md): wrong merge accepted {wrong}")
+        assert not wrong, f"merged off the truth (> 0.3 m or 3 deg): {wrong}"
     except BaseException:
         keep = True  # the daemons' logs, for whoever reads the failure
         raise

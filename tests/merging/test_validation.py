@@ -23,4 +23,4 @@ def test_true_transform_scores_high_and_wrong_ones_low(near_pair):
     for wrong in (flipped, shifted):
         bad = agreement(a, b, wrong)
         assert bad.score < 0.9
-        assert bad.support() < good.support()
+        assert bad.support(20.0) < good.support(20.0)

@@ -1,0 +1,98 @@
+"""The Merger searches a merged map again once the pair grew (recheck_growth), its known transform
+competing, and leaves out a map whose search found two fits until one wins (contested)."""
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from coopd.daemon.budget import MemoryBudget
+from coopd.daemon.merger import Merger
+from coopd.geometry import rotation_angle_deg
+from coopd.io.cmap import load_cmap
+from coopd.merging import GlobalMergeResult, MergeResult, merge_all
+from coopd.sharing.wire import MapMeta, encode_map
+
+DATA = Path(__file__).parents[1] / "merging" / "data" / "small_house_flip"
+
+
+@pytest.fixture(scope="module")
+def flip():
+    info = json.loads((DATA / "truth.json").read_text())
+    maps = {name: [load_cmap(DATA / f"{name}_{i}.cmap")[0] for i in (1, 2)] for name in ("early", "later")}
+    return maps, np.array(info["truth_1_from_2"]), np.array(info["accepted_early_1_from_2"])
+
+
+class Feed:
+    """What the Merger reads: our local map and the one received map, switchable between stages."""
+
+    def __init__(self, maps, stage="early"):
+        self.maps, self.stage, self.version = maps, stage, 1
+
+    def set(self, stage):
+        self.stage, self.version = stage, self.version + 1
+
+    def local(self):
+        return self.maps[self.stage][0].copy(), self.version
+
+    def received(self):
+        grid = self.maps[self.stage][1]
+        return [SimpleNamespace(vehicle_id=2, version=self.version,
+                                data=encode_map(grid, MapMeta(2, self.version)))]
+
+
+def _merger(feed, merge_fn, **kw):
+    return Merger(1, feed.local, feed.received, MemoryBudget(256 << 20, baseline_bytes=0), period_s=3600,
+                  merge_fn=merge_fn, distributed=False, **kw)
+
+
+def _offset(m):
+    return np.reshape(m.offsets[2]["transform"], (4, 4))
+
+
+def test_a_map_merged_on_early_maps_is_searched_again_once_grown_and_ends_on_the_truth(flip):
+    maps, truth, _ = flip
+    feed = Feed(maps)
+    m = _merger(feed, merge_all)
+    assert m.merge_once("early")["outcome"] == "done"
+    feed.set("later")
+    assert maps["later"][0].counts().known + maps["later"][1].counts().known >= \
+        1.3 * (maps["early"][0].counts().known + maps["early"][1].counts().known)
+    assert m.merge_once("later")["outcome"] == "done"
+    assert m.counters["full_registrations"] == 2 and m.offsets[2]["method"] == "full"
+    assert m.offsets[2]["accepted"]
+    t = _offset(m)
+    assert np.linalg.norm(t[:3, 3] - truth[:3, 3]) < 0.3 and rotation_angle_deg(t[:3, :3].T @ truth[:3, :3]) < 3
+
+
+def test_an_ambiguous_search_drops_our_transform_and_only_a_winning_search_brings_it_back(flip):
+    maps, _, early = flip
+    calls, answers = [], []
+
+    def fake(reference, others, params, **kw):
+        calls.append(kw)
+        accepted, reason, method = answers.pop(0)
+        r = MergeResult(accepted, early, 10, 0.97, 5000, 100, 0.0, reason, 0.5, method=method)
+        return GlobalMergeResult(reference, [r], 1, [0], int(method == "full"))
+
+    feed = Feed(maps)
+    m = _merger(feed, fake)
+    answers += [(True, "accepted", "full"), (True, "accepted", "hint:own")]
+    m.merge_once("first")
+    feed.set("early")
+    m.merge_once("warm")
+    assert "contest" not in calls[1] and calls[1]["hints"][0][0].source == "own"
+    answers.append((False, "ambiguous: a distinct hypothesis scores 0.970", "full"))
+    feed.set("later")  # the pair grew 1.3x: the map is searched again, our transform competing
+    m.merge_once("recheck")
+    assert calls[2]["contest"] == frozenset({0}) and not m.offsets[2]["accepted"]
+    answers.append((False, "ambiguous: still", "full"))
+    feed.set("later")
+    m.merge_once("contested")  # our own transform is gone: nothing to hint, a plain full search
+    assert "hints" not in calls[3] and "contest" not in calls[3]
+    answers.append((True, "accepted", "full"))
+    feed.set("later")
+    m.merge_once("resolved")
+    assert m.offsets[2]["accepted"] and m.status()["contested"] == []
