@@ -96,3 +96,27 @@ def test_an_ambiguous_search_drops_our_transform_and_only_a_winning_search_bring
     feed.set("later")
     m.merge_once("resolved")
     assert m.offsets[2]["accepted"] and m.status()["contested"] == []
+
+
+def test_once_the_maps_stop_growing_a_transform_decided_on_smaller_maps_is_searched_once_more(flip):
+    maps, _, early = flip
+    calls = []
+
+    def fake(reference, others, params, **kw):
+        calls.append(kw)
+        method = "full" if not kw.get("hints") or kw.get("contest") else "hint:own"
+        r = MergeResult(True, early, 10, 0.97, 5000, 100, 0.0, "accepted", 0.5, method=method)
+        return GlobalMergeResult(reference, [r], 1, [0], int(method == "full"))
+
+    feed = Feed(maps)
+    m = _merger(feed, fake, recheck_growth=100.0)  # growth alone never rechecks here
+    m.merge_once("early")  # full search on the early maps
+    feed.set("later")
+    m.merge_once("growing")  # the maps grew: the own hint serves
+    assert "contest" not in calls[1] and m.offsets[2]["method"] == "hint:own"
+    feed.set("later")
+    m.merge_once("settled")  # no growth since the last merge: the flight is over, search once more
+    assert calls[2]["contest"] == frozenset({0}) and m.offsets[2]["method"] == "full"
+    feed.set("later")
+    m.merge_once("after")  # decided on the final maps now: hints again
+    assert "contest" not in calls[3] and m.status()["rechecks"] == 1
