@@ -13,11 +13,10 @@ from pathlib import Path
 
 from coopd.daemon import control
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET
+from coopd.sharing.wire_options import DecodeLimits
 
 # Map decoding and exports (numpy, numba kernels) load only when dump-map runs: status, peers and
 # merge-now start fast and need no numba cache directory.
-MAX_DUMP_BYTES = 512 * 1024 * 1024
-MAX_DUMP_CELLS = 400_000_000
 
 SOCKET_ENV = "COOPD_SOCKET"
 FORMATS = ("cmap", "ply", "png", "bt")
@@ -66,8 +65,8 @@ def register(subparsers) -> None:
         metavar="METRES",
         help="png only: horizontal slice at this height instead of the top view",
     )
-    dump.add_argument("--max-bytes", type=int, default=MAX_DUMP_BYTES, help="refuse larger maps")
-    dump.add_argument("--max-cells", type=int, default=MAX_DUMP_CELLS, help="refuse larger maps")
+    dump.add_argument("--max-bytes", type=int, default=DecodeLimits.max_bytes, help="refuse larger maps")
+    dump.add_argument("--max-cells", type=int, default=DecodeLimits.max_cells, help="refuse larger maps")
     _socket_args(dump, timeout=60.0)
     dump.set_defaults(handler=run_dump_map)
 
@@ -297,7 +296,7 @@ def output_format(path: Path, to: str | None) -> str:
 def run_dump_map(args) -> int:
     from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
     from coopd.io.atomic import write_atomic
-    from coopd.sharing.wire import DecodeLimits, decode_map
+    from coopd.sharing.wire import decode_map
 
     fmt = output_format(args.output, args.to)
     if args.z is not None and fmt != "png":

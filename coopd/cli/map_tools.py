@@ -3,9 +3,10 @@
 import json
 from pathlib import Path
 
-from coopd.io import export_bt, export_ply, export_png_slice, export_png_top, load_cmap, save_cmap
-from coopd.io.cmap import read_cmap_bytes
-from coopd.sharing.wire import ENCODINGS, DecodeLimits, decode_map, peek
+from coopd.sharing.wire_options import ENCODINGS, DecodeLimits
+
+# Map decoding and exports (numpy, numba kernels) load inside the handlers, as in daemon_commands:
+# building coopctl's parser for status, peers or merge-now must not import them.
 
 FORMATS = ("ply", "png", "bt", "cmap")
 
@@ -57,6 +58,9 @@ def _limits(args) -> DecodeLimits:
 
 def map_info(path: Path, limits: DecodeLimits) -> dict:
     """Everything `map info` reports about a map file, as plain data."""
+    from coopd.io.cmap import read_cmap_bytes
+    from coopd.sharing.wire import decode_map, peek
+
     data = read_cmap_bytes(path, limits)
     header = peek(data)
     grid, meta = decode_map(data, limits)
@@ -120,6 +124,8 @@ def default_output(path: Path, fmt: str, z: float | None) -> Path:
 
 
 def run_convert(args) -> int:
+    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top, load_cmap, save_cmap
+
     if args.z is not None and args.to != "png":
         raise ValueError("--z applies to --to png only")
     grid, meta = load_cmap(args.file, _limits(args))
@@ -144,6 +150,7 @@ def run_convert(args) -> int:
 
 def run_merge(args) -> int:
     """`coopctl map merge`: merge_all over the files, the global map saved, a report printed."""
+    from coopd.io import load_cmap, save_cmap
     from coopd.merging import VARIANTS, merge_files
     from coopd.sharing.wire import MapMeta
 

@@ -21,6 +21,14 @@ from coopd.grid import OccupancyGrid
 
 from . import codec, planes
 from .codec import CodecError
+from .wire_options import (  # defined there without numpy; callers may import them from here
+    DEFAULT_ENCODING,
+    DEFAULT_LIMITS,
+    ENCODING_NAMES,
+    ENCODING_PREFERENCE,
+    ENCODINGS,
+    DecodeLimits,
+)
 
 MSG_THESIS_MAP = 0
 MSG_COOPD_MAP = 1
@@ -43,12 +51,6 @@ COOPD_HEADER = struct.Struct("<bBHiBBH3i3id3dQdII")
 COOPD_PREFIX = struct.Struct("<bBH")
 """Bytes every coopd message version starts with: type, format version, header length."""
 
-ENCODINGS = {"raw": 0, "thesis": 1, "thesis-zstd": 2, "planes-zstd": 3}
-"""Payload encodings of the coopd map message, by name -> id (docs/protocol.md)."""
-ENCODING_NAMES = {v: k for k, v in ENCODINGS.items()}
-DEFAULT_ENCODING = "planes-zstd"
-ENCODING_PREFERENCE = ("planes-zstd", "thesis-zstd", "thesis", "raw")
-"""Our order of preference when negotiating with a peer; "thesis" is what every coopd reads."""
 ZSTD_LEVEL = 3
 
 INT32_MAX = 2**31 - 1
@@ -64,17 +66,6 @@ class MessageVersionError(WireError):
 
 class UnknownMessageType(WireError):
     """A message type this coopd does not know, or a reserved number it refuses."""
-
-
-@dataclass(frozen=True)
-class DecodeLimits:
-    """Upper bounds a received message must respect before anything is allocated for it."""
-
-    max_cells: int = 400_000_000
-    max_bytes: int = 512 * 1024 * 1024
-
-
-DEFAULT_LIMITS = DecodeLimits()
 
 
 @dataclass(frozen=True)

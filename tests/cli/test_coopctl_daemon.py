@@ -182,13 +182,6 @@ def test_dump_map_errors(daemon, tmp_path, capsys):
     assert not (tmp_path / "x.cmap").exists()
 
 
-def test_dump_limits_default_to_the_wire_limits():
-    from coopd.cli.daemon_commands import MAX_DUMP_BYTES, MAX_DUMP_CELLS
-    from coopd.sharing.wire import DecodeLimits
-
-    assert (MAX_DUMP_BYTES, MAX_DUMP_CELLS) == (DecodeLimits().max_bytes, DecodeLimits().max_cells)
-
-
 def test_daemon_not_running(tmp_path, capsys):
     path = tmp_path / "absent.sock"
     assert main(["status", "--socket", str(path)]) == 1
