@@ -99,7 +99,7 @@ class Merger:
         local_version: Callable[[], int] | None = None,
         settle_s: float = 0.0,
         defer_full_s: float = 0.0,
-        recheck_growth: float = 1.3,
+        recheck_growth: float | None = 1.3,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -131,7 +131,9 @@ class Merger:
         self.recheck_growth = recheck_growth
         """A merged map is searched again, its known transforms competing, once the known cells of it
         and our map grew this much since it was last decided: a transform accepted on small early maps
-        of a symmetric building (a 180-degree flip, a slide along a corridor) is not kept for good."""
+        of a symmetric building (a 180-degree flip, a slide along a corridor) is not kept for good.
+        None: never re-searched, neither grown nor settled (the rules before rechecks, for benches);
+        contested maps still only compete."""
         self._decided_at: dict[int, int] = {}
         """Vehicle id -> known cells of its map and ours when its transform was last decided."""
         self._last_size: dict[int, int] = {}
@@ -370,17 +372,24 @@ class Merger:
         """Input maps whose hints compete in a full search this time: contested ones; those whose
         known cells (theirs + ours) grew recheck_growth times since their last decision; and, once
         the pair stopped growing (SETTLED_GROWTH), those decided on maps SETTLED_RECHECK smaller, so
-        the transform kept after the flight is judged on the final maps."""
+        the transform kept after the flight is judged on the final maps (these two never with
+        recheck_growth None)."""
         out = set()
         for k, vid in enumerate(vids):
             if not hints[k]:
                 continue
-            decided = self._decided_at.get(vid, sizes[k])
-            settled = (sizes[k] < SETTLED_GROWTH * self._last_size.get(vid, 0)
-                       and sizes[k] > SETTLED_RECHECK * decided)
-            if vid in self._contested or sizes[k] >= self.recheck_growth * decided or settled:
+            if vid in self._contested or self._grown_or_settled(vid, sizes[k]):
                 out.add(k)
         return frozenset(out)
+
+    def _grown_or_settled(self, vid: int, size: int) -> bool:
+        """The pair grew recheck_growth times since its decision, or settled on maps SETTLED_RECHECK
+        larger than those it was decided on; never with recheck_growth None."""
+        if self.recheck_growth is None:
+            return False
+        decided = self._decided_at.get(vid, size)
+        settled = size < SETTLED_GROWTH * self._last_size.get(vid, 0) and size > SETTLED_RECHECK * decided
+        return size >= self.recheck_growth * decided or settled
 
     def _decide(self, vids: list[int], results: list, sizes: list[int]) -> None:
         """Record how each map was decided: a full search sets the size mark and settles or raises

@@ -120,3 +120,22 @@ def test_once_the_maps_stop_growing_a_transform_decided_on_smaller_maps_is_searc
     feed.set("later")
     m.merge_once("after")  # decided on the final maps now: hints again
     assert "contest" not in calls[3] and m.status()["rechecks"] == 1
+
+
+def test_recheck_growth_none_never_searches_a_merged_map_again(flip):
+    maps, _, early = flip
+    calls = []
+
+    def fake(reference, others, params, **kw):
+        calls.append(kw)
+        method = "hint:own" if kw.get("hints") else "full"
+        r = MergeResult(True, early, 10, 0.97, 5000, 100, 0.0, "accepted", 0.5, method=method)
+        return GlobalMergeResult(reference, [r], 1, [0], int(method == "full"))
+
+    feed = Feed(maps)
+    m = _merger(feed, fake, recheck_growth=None)
+    for stage in ("early", "later", "later"):  # grown 1.3x, then settled: neither rechecks
+        feed.set(stage)
+        m.merge_once(stage)
+    assert [("contest" in kw) for kw in calls] == [False] * 3 and m.status()["rechecks"] == 0
+    assert m.offsets[2]["method"] == "hint:own"
