@@ -85,8 +85,12 @@ class MergeParams:
     """ICP steps: the first half shrink the correspondence radius from 6 to 1.5 cells, the rest hold it
     (14 left some transforms 0.2 m short of convergence)."""
     refine_max_points: int = 4000
-    refine_candidates: int = 4
-    """Candidates (best by coarse agreement) that are refined and validated."""
+    refine_candidates: int = 6
+    """Candidates refined and validated; beyond this many (the feature variants add hypotheses) the
+    best by unrefined support go on. Every search hypothesis is refined (6 = search_candidates):
+    before ICP one is up to a search cell and a yaw step off, and its conflicts are misalignment as
+    much as evidence, so a cut on them dropped the true fit of the racetrack (thin 0.9 m barriers)
+    for a clean but wrong one once a conflict weighed 20 agreements."""
     # --- validation (coopd; the thesis leaves it as future work)
     min_inliers: int = 5
     validation_max_points: int = 30000

@@ -83,9 +83,12 @@ def test_two_drones_share_merge_and_leave_nothing_behind():
 @pytest.mark.slow
 def test_demo_interrupted_stops_every_process_and_namespace(tmp_path):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # Ctrl-C as from a terminal, also when this test runs in a background job (which ignores SIGINT
+    # and would hand that on to the demo)
     proc = subprocess.Popen([sys.executable, str(ROOT / "scripts" / "demo.py"), "--drones", "2",
                              "--port-base", str(PORTS + 2), "--out", str(tmp_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     try:
         deadline = time.monotonic() + 240
