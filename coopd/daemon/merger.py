@@ -339,9 +339,10 @@ class Merger:
         accepted = [v for v, o in offsets.items() if o["accepted"]]
         how = ", ".join(f"{v} {o['method']}{' rechecked' if k in contest else ''}"
                         for k, (v, o) in enumerate(offsets.items()) if o["accepted"] or k in contest)
+        rounds = f"{result.rounds} rounds" + (f"; {how}" if how else "")
         return "done", (
             f"{len(accepted)} of {len(infos)} received maps merged {accepted} (local v{local_version}, "
-            f"{result.rounds} rounds{'; ' + how if how else ''}); global {'x'.join(map(str, merged.shape))} cells"
+            f"{rounds}); global {'x'.join(map(str, merged.shape))} cells"
         )
 
     def _hints(self, vids: list[int]) -> list[list]:
@@ -401,7 +402,7 @@ class Merger:
                 self._decided_at[vid] = sizes[k]
                 if r.accepted:
                     self._contested.discard(vid)
-                elif str(r.reason).startswith("ambiguous"):
+                elif getattr(r, "ambiguous", False):
                     if vid in self._accepted or vid not in self._contested:
                         log.warning("vehicle %d: its map fits ours two ways (%s); left out until one "
                                     "fit wins", vid, r.reason)

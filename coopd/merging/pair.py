@@ -18,6 +18,9 @@ from .ransac import filter_correspondences
 from .refine import icp
 from .validation import Agreement, MapSummary, agreement, summarise
 
+AMBIGUOUS = "ambiguous"
+"""How the reason of a result refused for a close distinct runner-up begins (MergeResult.ambiguous)."""
+
 
 @dataclass(frozen=True)
 class MergeResult:
@@ -37,6 +40,11 @@ class MergeResult:
     method: str = "full"
     """How the transform was found: "full" (global search) or "hint:<source>" (a hint refined and
     validated, see hints.py); lets the daemon count the merge work it saved."""
+
+    @property
+    def ambiguous(self) -> bool:
+        """Refused because a distinct hypothesis explains the maps about as well (min_margin)."""
+        return not self.accepted and self.reason.startswith(AMBIGUOUS)
 
     def to_json(self) -> dict:
         """JSON-ready summary; euler_deg is (roll, pitch, yaw) by eq. 33."""
@@ -197,7 +205,7 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     overlap = _share(best_ag, a, b)
     reason = _rejection(best_ag, best.inliers, overlap, params) or "accepted"
     if reason == "accepted" and runner is not None and runner[0] >= (1.0 - params.min_margin) * scored[0][0]:
-        reason = f"ambiguous: a distinct hypothesis scores {runner[1].score:.3f} with support " \
+        reason = f"{AMBIGUOUS}: a distinct hypothesis scores {runner[1].score:.3f} with support " \
                  f"{runner[0]:.0f} vs {scored[0][0]:.0f}"
     return MergeResult(reason == "accepted", best.transform, best.inliers, best_ag.score, best_ag.agree,
                        best_ag.conflicts, runner_score, reason, overlap, tm)

@@ -105,10 +105,9 @@ class MergeParams:
     A conflict (a wall where the other map saw through) is strong evidence, an agreement weak: in
     symmetric buildings the mirror or corridor-shifted fit of the drones' maps overlaps more than the
     true one (their routes are symmetric too) but conflicts at 1-4 % of its agreements against
-    0.2-2 % for the truth. On 160 searches over snapshots of daemon flight maps (hospital and
-    small_house; tests/merging/test_recheck.py holds one pair) a weight of 3 accepted the truth 11
-    times, 20 accepted it 74 times; both accepted a wrong fit on small early maps about as often
-    (43, 46), which the daemon's rechecks of grown maps repair (docs/merging.md)."""
+    0.2-2 % for the truth (tests/merging/test_recheck.py holds such a pair). With the daemon's
+    rechecks, `scripts/bench merge_replay` over 11 recorded flights ends 42 of 42 pairs outside the
+    hospital right (weight 3 without rechecks: 36, 5 of them flipped; docs/accuracy.md)."""
     min_agreement: int = 600
     """Occupied cells of either map that land on the other's occupied surface."""
     min_overlap: float = 0.2

@@ -1,5 +1,6 @@
 """scripts/bench merge_replay: recorded flights replayed through the daemon's merging thread (Merger)
-under the merging rules before rechecks ("old": conflict_weight 3, no rechecks) and today's ("new").
+under the merging rules before rechecks ("old": conflict_weight 3, no rechecks; every search
+hypothesis refined, as today) and today's ("new").
 
 --record DIR flies one recording: firmware_sim.swarm.Swarm with N real coopd daemons; every few
 seconds every daemon's local map is dumped through its control socket (DIR/<tag>_d<i>.cmap, tags
@@ -34,11 +35,12 @@ sys.path[:0] = [str(ROOT)]
 from coopd.daemon.budget import MemoryBudget  # noqa: E402
 from coopd.daemon.config import MergingConfig, SharingConfig  # noqa: E402
 from coopd.daemon.merger import Merger  # noqa: E402
-from coopd.geometry import invert, rotation_angle_deg  # noqa: E402
+from coopd.geometry import invert  # noqa: E402
 from coopd.io.cmap import read_cmap_bytes  # noqa: E402
 from coopd.merging import merge_all  # noqa: E402
 from coopd.merging.params import coopd_params  # noqa: E402
 from coopd.sharing.wire import DecodeLimits, decode_map  # noqa: E402
+from firmware_sim.accuracy import offset_error  # noqa: E402
 
 RULES = {
     "old": (coopd_params().with_(conflict_weight=3.0), None),
@@ -155,8 +157,7 @@ def judge(offset: dict | None, truth: np.ndarray, tol_m: float, tol_deg: float) 
     """A Merger offset entry against the truth: ("right" | "wrong" | "none", [error m, error deg])."""
     if not offset or not offset["accepted"]:
         return "none", None
-    t = np.reshape(offset["transform"], (4, 4))
-    err = [float(np.linalg.norm(t[:3, 3] - truth[:3, 3])), rotation_angle_deg(t[:3, :3].T @ truth[:3, :3])]
+    err = offset_error(np.reshape(offset["transform"], (4, 4)), truth)
     right = err[0] <= tol_m and err[1] <= tol_deg
     return ("right" if right else "wrong"), [round(v, 3) for v in err]
 

@@ -13,6 +13,7 @@ swarm converged within 0.3 m / 3 deg of the truth. Recovery times are printed.
 
 import json
 import os
+import re
 import signal
 import time
 
@@ -67,9 +68,17 @@ class Versions:
 
     def see(self, statuses: list[dict]) -> list[dict]:
         for s in statuses:
-            v = s["sharing"]["published_version"] or 0
-            self.highest[s["vehicle_id"]] = max(v, self.highest.get(s["vehicle_id"], 0))
+            self._saw(s["vehicle_id"], s["sharing"]["published_version"] or 0)
         return statuses
+
+    def see_sent(self, vehicle_id: int, log_text: str) -> None:
+        """The versions a daemon's log says it sent (a daemon killed -9 may have published more
+        since the last status we sampled)."""
+        for v in re.findall(rf"\bmap of vehicle {vehicle_id} v(\d+) sent to vehicle", log_text):
+            self._saw(vehicle_id, int(v))
+
+    def _saw(self, vehicle_id: int, version: int) -> None:
+        self.highest[vehicle_id] = max(version, self.highest.get(vehicle_id, 0))
 
 
 def stored_maps_complete(swarm: Swarm, i: int, legit: set[int]) -> dict[int, int]:
@@ -150,6 +159,7 @@ def test_fault_schedule_during_one_flight():
         assert not swarm.landed()
         t0 = time.monotonic()
         assert swarm.kill_daemon(0) == -signal.SIGKILL
+        versions.see_sent(1, swarm.daemons[0].log_tail(1 << 24))
         swarm.fc_link(1, up=False)
         swarm.sim.stall_camera(2, 10.0)
         record["disk filled bytes"] = swarm.fill_disk(2)
