@@ -151,6 +151,9 @@ def format_status(s: dict) -> str:
         )
     else:
         rows.append(("peers", "-"))
+    receiving = (s.get("sharing") or {}).get("receiving") or []
+    if receiving:
+        rows.append(("receiving", ", ".join(_transfer_short(r) for r in receiving)))
     mg = s.get("merges") or {}
     rows.append(
         (
@@ -221,6 +224,12 @@ def format_status(s: dict) -> str:
 
 def _peer_short(p: dict) -> str:
     return f"{p.get('vehicle_id', '?')} (v{p.get('map_version', '-')}, {_num(p.get('last_seen_s'), 1)} s ago)"
+
+
+def _transfer_short(r: dict) -> str:
+    who = "unidentified peer" if r.get("vehicle_id") is None else f"vehicle {r['vehicle_id']}"
+    return f"map from {who} at {r.get('address', '?')}: {_mib(r.get('received_bytes'))} of " \
+           f"{_mib(r.get('announced_bytes'))}"
 
 
 def _num(v, digits: int) -> str:

@@ -377,6 +377,7 @@ class SharingService:
             "received_bytes_held": self.received.total_bytes(),
             "open_connections": self._server.open_connections,
             "inflight_bytes": self._server.inflight_bytes,
+            "receiving": self._server.receiving(),
             "connections_accepted": self._server.accepted,
             "refused_busy": self._server.refused_busy, "scans": self.scans,
         })

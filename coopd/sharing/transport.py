@@ -183,6 +183,7 @@ class MapServer:
         self._slots = threading.BoundedSemaphore(settings.max_connections)
         self._budget = _Budget(settings.max_inflight_bytes)
         self._conns: set[socket.socket] = set()
+        self._receivers: set[_Connection] = set()
         self._per_address: dict[str, int] = {}
         self._threads: set[threading.Thread] = set()
         self._lock = threading.Lock()
@@ -204,6 +205,18 @@ class MapServer:
     @property
     def peak_inflight_bytes(self) -> int:
         return self._budget.peak
+
+    def receiving(self) -> list[dict]:
+        """Transfers under way: who sends, and how far it got (coopctl status; tests cut links on it)."""
+        with self._lock:
+            receivers = list(self._receivers)
+        out = []
+        for c in receivers:
+            reasm = c.reasm
+            if reasm.in_transfer:
+                out.append({"vehicle_id": c.vehicle_id, "address": c.address,
+                            "received_bytes": reasm.received_bytes, "announced_bytes": reasm.announced_bytes})
+        return out
 
     @property
     def open_connections(self) -> int:
@@ -268,11 +281,15 @@ class MapServer:
             t.start()
 
     def _serve(self, conn: socket.socket, addr) -> None:
+        receiver = _Connection(self, conn, addr[0])
+        with self._lock:
+            self._receivers.add(receiver)
         try:
-            _Connection(self, conn, addr[0]).run()
+            receiver.run()
         finally:
             conn.close()
             with self._lock:
+                self._receivers.discard(receiver)
                 self._conns.discard(conn)
                 self._threads.discard(threading.current_thread())
                 left = self._per_address.pop(addr[0], 1) - 1

@@ -43,6 +43,8 @@ STATUS = {
             "last_seen_s": 1.5,
         }
     ],
+    "sharing": {"receiving": [{"vehicle_id": 5, "address": "10.42.0.5", "received_bytes": 40960,
+                               "announced_bytes": 3 << 20}]},
     "merges": {"done": 10, "failed": 1, "deferred": 2, "full_registrations": 3, "hinted": 7, "hinted_own": 5,
                "hinted_peer": 2, "hint_rejected": 1, "rechecks": 2, "cpu_s": 4.25, "distributed": True,
                "contested": [5]},
@@ -108,6 +110,7 @@ def test_status_table_and_json(daemon, capsys):
     assert "20 x 16 x 8 = 2560 cells at 0.1 m, 1900 known (74.2 %), version 41" in out
     assert "1234 in, 12 dropped, 3 rejected" in out
     assert "10 done, 1 failed, 2 deferred" in out
+    assert "receiving   map from vehicle 5 at 10.42.0.5: 40.0 KiB of 3.0 MiB\n" in out
     assert "3 full registrations, 7 hinted (2 by peers' results), 1 hints refused, 2 rechecks, 4.25 s CPU\n" in out
     assert "contested   maps that fit ours two ways, left out: vehicle 5\n" in out
     assert "RSS 200.0 MiB of 512.0 MiB budget" in out and "2 reservations refused" in out

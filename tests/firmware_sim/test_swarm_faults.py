@@ -126,12 +126,15 @@ def failures_about(statuses: list[dict], vid: int) -> int:
     return total
 
 
-def inflight_anywhere(swarm: Swarm, drones) -> bool:
-    for i in drones:
-        s = swarm.daemons[i].status(timeout_s=STATUS_S)
-        if s and s["sharing"]["inflight_bytes"] > 0:
-            return True
-    return False
+def transfer_through(swarm: Swarm, vid: int, min_left: int) -> dict | None:
+    """A map transfer under way over vehicle vid's radio (to it or from it) with at least min_left
+    bytes still to come, as the receiving daemon's status shows it; None if there is none."""
+    for i, d in enumerate(swarm.daemons):
+        s = d.status(timeout_s=STATUS_S) or {}
+        for r in s.get("sharing", {}).get("receiving", []):
+            if vid in (i + 1, r["vehicle_id"]) and r["announced_bytes"] - r["received_bytes"] >= min_left:
+                return {"receiver": i + 1, **r}
+    return None
 
 
 @needs_netns
@@ -206,8 +209,9 @@ def test_fault_schedule_during_one_flight():
         swarm.lab.shape(2, "300kbit")
         fail0 = failures_about(statuses, 2)
         deadline = time.monotonic() + 60
-        while not (mid := inflight_anywhere(swarm, (0, 2))) and time.monotonic() < deadline:
-            time.sleep(0.2)
+        while not (mid := transfer_through(swarm, 2, 16 << 10)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert mid, "no map transfer over drone 2's radio within 60 s"
         swarm.radio(1, up=False)
         t_cut = time.monotonic()
         time.sleep(8)

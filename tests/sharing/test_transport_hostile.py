@@ -152,6 +152,9 @@ def test_concurrent_transfers_share_a_bounded_byte_budget(server):
         assert wait_until(lambda: failures(svc).get("busy") == 2, 3), failures(svc)
         assert svc._server.inflight_bytes == 2 * 64 * BS
         assert svc._server.peak_inflight_bytes <= 2 * 64 * BS
+        under_way = svc.stats()["receiving"]  # what coopctl status shows: two transfers, nothing in yet
+        assert [(r["vehicle_id"], r["received_bytes"], r["announced_bytes"]) for r in under_way] == \
+            [(None, 0, 64 * BS)] * 2
     finally:
         for s in socks:
             s.close()
