@@ -108,7 +108,7 @@ def test_tcp_connection_and_reconnect():
                 conn.settimeout(1.0)
                 try:
                     got.append(conn.recv(4096))
-                except TimeoutError:
+                except OSError:  # timed out, or the link already closed (reset) at the test's end
                     got.append(b"")
                 time.sleep(0.2)
 
