@@ -137,7 +137,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
             searched.add(i)
             tm = {}
             t0 = time.perf_counter()
-            known = [t for t in (resolve(h, merged) for h in hints[i]) if t is not None] if i in contest else []
+            known = [t for t in (resolve(h, merged) for h in hints[i]) if t is not None] \
+                if i in contest else []
             r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm, known)
             full += 1
             finish(i, r, tm, t0)

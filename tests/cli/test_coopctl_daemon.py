@@ -111,7 +111,8 @@ def test_status_table_and_json(daemon, capsys):
     assert "1234 in, 12 dropped, 3 rejected" in out
     assert "10 done, 1 failed, 2 deferred" in out
     assert "receiving   map from vehicle 5 at 10.42.0.5: 40.0 KiB of 3.0 MiB\n" in out
-    assert "3 full registrations, 7 hinted (2 by peers' results), 1 hints refused, 2 rechecks, 4.25 s CPU\n" in out
+    assert "3 full registrations, 7 hinted (2 by peers' results), 1 hints refused, 2 rechecks, " \
+        "4.25 s CPU\n" in out
     assert "contested   maps that fit ours two ways, left out: vehicle 5\n" in out
     assert "RSS 200.0 MiB of 512.0 MiB budget" in out and "2 reservations refused" in out
     assert "nice 0 (asked -5: EPERM)" in out and "nice 10\n" in out

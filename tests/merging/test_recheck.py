@@ -46,7 +46,8 @@ def test_the_early_fit_is_the_mirror_and_the_truth_agrees_better_on_the_later_ma
 
 def test_a_contested_hint_competes_with_the_search_and_the_true_fit_wins(flip):
     maps, truth, early = flip
-    res = merge_all(maps["later"][0], [maps["later"][1]], hints=[[Hint(early, "own")]], contest=frozenset({0}))
+    res = merge_all(maps["later"][0], [maps["later"][1]], hints=[[Hint(early, "own")]],
+                    contest=frozenset({0}))
     r = res.results[0]
     assert r.accepted and r.method == "full" and res.full_registrations == 1, r.reason
     assert _close(r.transform, truth)
