@@ -364,9 +364,10 @@ class Swarm:
         return all(self.sim.route_finished(i) for i in range(self.settings.drones))
 
     def merged_vehicles(self, s: dict | None) -> dict[int, dict]:
-        """Vehicle id -> offset entry of every map merged into a daemon's global map."""
+        """Vehicle id -> offset entry of every map merged into a daemon's global map (provisional
+        merges, held out of it, do not count)."""
         offsets = ((s or {}).get("merges") or {}).get("offsets") or {}
-        return {int(k): v for k, v in offsets.items() if v.get("accepted", True)}
+        return {int(k): v for k, v in offsets.items() if v.get("accepted", True) and not v.get("provisional")}
 
     def converged(self) -> bool:
         """Every daemon has merged every other drone's map."""

@@ -171,6 +171,9 @@ def format_status(s: dict) -> str:
                 + ("" if mg.get("distributed", True) else ", not distributed"),
             )
         )
+    if mg.get("provisional"):
+        rows.append(("provisional", "merges found, held out of the global map until confirmed: "
+                     + ", ".join(f"vehicle {v}" for v in mg["provisional"])))
     if mg.get("contested"):
         rows.append(("contested", "maps that fit ours two ways, left out: "
                      + ", ".join(f"vehicle {v}" for v in mg["contested"])))

@@ -259,6 +259,10 @@ class MergingConfig:
         "search a merged map again, its transform competing, once the pair's known cells grew this much",
         1.3, _between(1.05, 100.0, "x"),
     )
+    confirm_before_fusing: bool = _key(
+        "hold a newly found fit out of the global map until a recheck finds it again or the maps settle",
+        True,
+    )
 
 
 @dataclass(frozen=True)

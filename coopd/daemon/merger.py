@@ -21,6 +21,9 @@ published merge results are hints too, and our own accepted transforms are publi
 A hint is judged alone, so once a pair's maps grew (recheck_growth) or stopped growing, the map is
 searched again with its hints competing (contest=...): a fit picked on small early maps of a
 symmetric building does not live on. A search that finds two fits leaves the map out (contested).
+With confirm_before_fusing, a fit newly found by a search is provisional: reported, but held out of
+the global map (merge_all(hold=...)) and not published until a recheck on grown maps finds it again
+or the maps stop growing. Early wrong fits then never reach the global map.
 """
 
 import logging
@@ -100,6 +103,7 @@ class Merger:
         settle_s: float = 0.0,
         defer_full_s: float = 0.0,
         recheck_growth: float | None = 1.3,
+        confirm_before_fusing: bool = False,
     ):
         self.vehicle_id = vehicle_id
         self.local_snapshot = local_snapshot
@@ -140,6 +144,11 @@ class Merger:
         """Vehicle id -> known cells of its map and ours at the last merge (to see the maps settle)."""
         self._contested: set[int] = set()
         """Vehicles whose last full search found two fits (ambiguous): their hints only compete."""
+        self.confirm_before_fusing = confirm_before_fusing
+        """A fit newly found by a search stays out of the global map (provisional) until a recheck on
+        maps recheck_growth times larger finds it again or the pair stops growing."""
+        self._provisional: set[int] = set()
+        """Vehicles whose accepted transform is provisional: reported, held out of the global map."""
         self._first_seen: dict[int, float] = {}
         self._unmerged: set[int] = set()
         self._deferring = False
@@ -230,7 +239,7 @@ class Merger:
             if self.enabled and self.available:
                 inputs = self.inputs()
                 same = inputs is not None and inputs == self._merged_inputs
-                if not urgent and same and not self._deferring:
+                if not urgent and same and not self._deferring and not self._provisional:
                     self.counters["unchanged"] += 1  # merging is deterministic: the same global map again
                 else:
                     if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
@@ -238,6 +247,8 @@ class Merger:
                         done_with_all = inputs is not None and not self._unmerged
                         self._merged_inputs = (*inputs[:2], ()) if done_with_all else inputs
                     not_before = time.monotonic() + self.min_gap_s
+                    if self._provisional:  # merge again soon: the maps grew, or they settled
+                        self.request("confirm")
             with self._cv:
                 self._completed = max(self._completed, ticket)
                 self._cv.notify_all()
@@ -309,7 +320,16 @@ class Merger:
                 local_known = local_grid.counts().known
                 sizes = [local_known + g.counts().known for g in others]
                 contest = self._to_contest(vids, hints, sizes)
+                held: set[int] = set()
                 kwargs = {}
+                if self.confirm_before_fusing:
+                    def hold(i: int, r) -> bool:
+                        if self._provisional_after(vids[i], r, sizes[i]):
+                            held.add(vids[i])
+                            return True
+                        return False
+
+                    kwargs["hold"] = hold
                 if any(hints):
                     kwargs["hints"] = hints
                 if hints_only:
@@ -322,22 +342,26 @@ class Merger:
                 merged = result.global_map
                 offsets = {}
                 for vid, r in zip(vids, result.results, strict=True):
-                    offsets[vid] = {"accepted": bool(r.accepted), "score": round(float(r.score), 4),
+                    offsets[vid] = {"accepted": bool(r.accepted), "provisional": vid in held,
+                                    "score": round(float(r.score), 4),
                                     "reason": str(r.reason), "method": getattr(r, "method", "full"),
                                     **offset_summary(r.transform)}
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
         self._count(result)
+        self._confirmations(vids, result.results, held, sizes)
         self._decide(vids, result.results, sizes)
         self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
-        self._publish(self._remember([m for m, _ in infos], result.results, local_version))
+        edges = self._remember([m for m, _ in infos], result.results, local_version)
+        self._publish([e for e in edges if e.b not in held])
         if not self.budget.reserve("global", merged.size):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
         self.offsets = offsets
         version = (self._global[1].version + 1) if self._global is not None else 1
         self._set_global((merged, MapMeta(self.vehicle_id, version, time.time())))
-        accepted = [v for v, o in offsets.items() if o["accepted"]]
+        accepted = [v for v, o in offsets.items() if o["accepted"] and not o["provisional"]]
         how = ", ".join(f"{v} {o['method']}{' rechecked' if k in contest else ''}"
+                        f"{' provisional' if o['provisional'] else ''}"
                         for k, (v, o) in enumerate(offsets.items()) if o["accepted"] or k in contest)
         rounds = f"{result.rounds} rounds" + (f"; {how}" if how else "")
         return "done", (
@@ -391,6 +415,38 @@ class Merger:
         decided = self._decided_at.get(vid, size)
         settled = size < SETTLED_GROWTH * self._last_size.get(vid, 0) and size > SETTLED_RECHECK * decided
         return size >= self.recheck_growth * decided or settled
+
+    def _provisional_after(self, vid: int, r, size: int) -> bool:
+        """Whether vid's accepted result r, on maps of `size` known cells (its and ours), is held out
+        of the global map. A new fit from a search is, until the pair stops growing; the same fit
+        found again by a recheck on grown (or settled) maps confirms it; our own provisional
+        transform, validated alone as a hint, stays provisional until the pair settles; a peer's
+        result (peers publish confirmed merges only) is not held."""
+        if not self.confirm_before_fusing:
+            return False
+        from coopd.merging.pair import distinct
+
+        settled = size < SETTLED_GROWTH * self._last_size.get(vid, 0)
+        method = getattr(r, "method", "full")
+        if method == "hint:peer":
+            return False
+        if method != "full":
+            return vid in self._provisional and not settled
+        before = self._accepted.get(vid)
+        if before is None or distinct(before, np.asarray(r.transform, dtype=np.float64)):
+            return not settled  # a new fit
+        if vid not in self._provisional:
+            return False
+        return not (settled or self._grown_or_settled(vid, size))
+
+    def _confirmations(self, vids: list[int], results: list, held: set[int], sizes: list[int]) -> None:
+        """Log the provisional merges this merge confirmed and keep the set of those still held."""
+        for vid, r, size in zip(vids, results, sizes, strict=True):
+            if vid in self._provisional and r.accepted and vid not in held:
+                log.info("vehicle %d: provisional merge confirmed (%s, maps %.2fx those it was found on); "
+                         "fused into the global map", vid, getattr(r, "method", "full"),
+                         size / max(1, self._decided_at.get(vid, size)))
+        self._provisional = set(held)
 
     def _decide(self, vids: list[int], results: list, sizes: list[int]) -> None:
         """Record how each map was decided: a full search sets the size mark and settles or raises
@@ -494,5 +550,6 @@ class Merger:
             "last": self.last,
             "offsets": {str(k): v for k, v in self.offsets.items()},
             "contested": sorted(self._contested),
+            "provisional": sorted(self._provisional),
             "global_version": None if self._global is None else self._global[1].version,
         }

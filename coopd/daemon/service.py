@@ -204,6 +204,7 @@ class Daemon:
             settle_s=min(config.sharing.scan_period_s, MERGE_MIN_GAP_S),
             defer_full_s=config.merging.defer_full_s,
             recheck_growth=config.merging.recheck_growth,
+            confirm_before_fusing=config.merging.confirm_before_fusing,
         )
         self.control = ControlServer(
             config.daemon.control_socket,

@@ -3,6 +3,7 @@ into the growing global map, and maps that failed are retried once the global ma
 inheritance). Every merged map's transform into the global (= reference) frame is reported."""
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -60,7 +61,8 @@ class _World:
 def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
               params: MergeParams | None = None, hints: list[list[Hint]] | None = None,
               hints_only: frozenset[int] = frozenset(),
-              contest: frozenset[int] = frozenset()) -> GlobalMergeResult:
+              contest: frozenset[int] = frozenset(),
+              hold: Callable[[int, MergeResult], bool] | None = None) -> GlobalMergeResult:
     """Merge others into a copy of reference, retrying failures while the global map keeps growing.
 
     hints[i]: candidate transforms for others[i] (hints.py). Hints go first and are retried whenever
@@ -69,7 +71,9 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
     maps in hints_only (their full search is left to a peer whose result will come as a hint).
     The maps in contest are not merged by a hint alone: their full search runs and their hints
     compete with its hypotheses under the runner-up margin (a transform accepted on small early maps
-    of a symmetric building is checked against the alternatives once the maps grew)."""
+    of a symmetric building is checked against the alternatives once the maps grew).
+    hold(i, result): an accepted map it returns True for is reported (and its transform resolves
+    other maps' hints) but not fused into the global map: a provisional merge, not yet trusted."""
     params = params or coopd_params()
     hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
     if len(hints) != len(others):
@@ -88,7 +92,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
 
     def finish(i: int, r: MergeResult, tm: dict, t0: float) -> None:
         if r.accepted:
-            world.fuse(others[i], r.transform, tm)
+            if hold is None or not hold(i, r):
+                world.fuse(others[i], r.transform, tm)
             merged[i] = r.transform
         tm["total"] = time.perf_counter() - t0
         results[i] = replace(r, timings=tm)

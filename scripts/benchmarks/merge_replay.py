@@ -1,6 +1,7 @@
 """scripts/bench merge_replay: recorded flights replayed through the daemon's merging thread (Merger)
 under the merging rules before rechecks ("old": conflict_weight 3, no rechecks; every search
-hypothesis refined, as today) and today's ("new").
+hypothesis refined, as today), with rechecks but every accepted fit fused at once ("rechecks") and
+today's defaults ("new": a newly found fit is provisional, held out of the global map until confirmed).
 
 --record DIR flies one recording: firmware_sim.swarm.Swarm with N real coopd daemons; every few
 seconds every daemon's local map is dumped through its control socket (DIR/<tag>_d<i>.cmap, tags
@@ -9,12 +10,14 @@ snapshot: truth["a<-b"] (4x4, carries drone b's map frame into drone a's, from S
 the offsets the daemons merged and their merge counters.
 --replay DIR ...: for every drone a of a recording and every rule set, a Merger (vehicle a, not
 distributed, merge_all) is fed snapshot after snapshot its local map and the other drones' maps
-(a drone's latest dump; versions grow with the snapshots), one merge_once per snapshot. After each,
-every accepted offset is judged against truth["a<-b"]: right within --tol-m and --tol-deg.
-Per recording and rule set: ordered pairs, right / wrong / not merged at the final snapshot,
-snapshot-states holding a wrong transform, merge CPU (Merger.cpu_s), full registrations, rechecks.
+(a drone's latest dump; versions grow with the snapshots), one merge_once per snapshot, and once more
+on the last one while a merge is provisional (the daemon merges again to confirm). After each, every
+accepted offset is judged against truth["a<-b"]: right within --tol-m and --tol-deg.
+Per recording and rule set: ordered pairs, right / wrong / not merged at the end, snapshot-states
+with a wrong transform in the global map (wrong_states) and with a provisional one held out of it
+(held_states), merge CPU (Merger.cpu_s), full registrations, rechecks.
 Prints a table and writes out/bench/merge_replay.json.
-Usage: scripts/bench merge_replay --replay /tmp/repro/r1 /tmp/repro/sh2 [--rules old,new]
+Usage: scripts/bench merge_replay --replay /tmp/repro/r1 /tmp/repro/sh2 [--rules old,rechecks,new]
        scripts/bench merge_replay --record DIR [--world small_house] [--seed 0] [--drones 2]
 """
 
@@ -43,15 +46,18 @@ from coopd.sharing.wire import DecodeLimits, decode_map  # noqa: E402
 from firmware_sim.accuracy import offset_error  # noqa: E402
 
 RULES = {
-    "old": (coopd_params().with_(conflict_weight=3.0), None),
-    "new": (coopd_params(), MergingConfig().recheck_growth),
+    "old": (coopd_params().with_(conflict_weight=3.0), None, False),
+    "rechecks": (coopd_params(), MergingConfig().recheck_growth, False),
+    "new": (coopd_params(), MergingConfig().recheck_growth, MergingConfig().confirm_before_fusing),
 }
-"""Rule set -> (merging params, Merger recheck_growth); None: no rechecks at all."""
+"""Rule set -> (merging params, Merger recheck_growth, confirm_before_fusing); recheck_growth None:
+no rechecks at all. "rechecks" are session 3's rules, "new" today's defaults."""
 LIMITS = DecodeLimits(SharingConfig().max_map_cells, SharingConfig().max_map_bytes)
 """The daemon's default limits on received maps."""
 BUDGET_BYTES = 16 << 30
 """The replay's Merger never defers a merge for memory."""
-STATE_CHARS = {"right": "R", "wrong": "W", "none": "."}
+STATE_CHARS = {"right": "R", "wrong": "W", "none": ".", "right held": "r", "wrong held": "w"}
+"""A pair's state after a merge; held: accepted but provisional, out of the global map."""
 
 
 # ------------------------------------------------------------------------------------ record
@@ -154,26 +160,31 @@ class Feed:
 
 
 def judge(offset: dict | None, truth: np.ndarray, tol_m: float, tol_deg: float) -> tuple[str, list | None]:
-    """A Merger offset entry against the truth: ("right" | "wrong" | "none", [error m, error deg])."""
+    """A Merger offset entry against the truth: ("right" | "wrong" | "none", with " held" when
+    provisional; [error m, error deg])."""
     if not offset or not offset["accepted"]:
         return "none", None
     err = offset_error(np.reshape(offset["transform"], (4, 4)), truth)
     right = err[0] <= tol_m and err[1] <= tol_deg
-    return ("right" if right else "wrong"), [round(v, 3) for v in err]
+    return ("right" if right else "wrong") + (" held" if offset.get("provisional") else ""), \
+        [round(v, 3) for v in err]
 
 
 def replay_drone(recording: dict, vehicle_id: int, rules: str, tol_m: float, tol_deg: float) -> dict:
     """One drone's Merger over every snapshot: per other drone its state history and final error."""
-    params, recheck_growth = RULES[rules]
+    params, recheck_growth, confirm = RULES[rules]
     feed = Feed(recording, vehicle_id)
     merger = Merger(vehicle_id, feed.local, feed.received, MemoryBudget(BUDGET_BYTES, baseline_bytes=0),
                     period_s=3600, merge_fn=merge_all, params=params, limits=LIMITS, distributed=False,
-                    recheck_growth=recheck_growth)
+                    recheck_growth=recheck_growth, confirm_before_fusing=confirm)
     others = [v for v in recording["drones"] if v != vehicle_id]
     pairs = {b: {"history": "", "final": "none", "error": None} for b in others}
-    for k, snap in enumerate(recording["snapshots"]):
-        if not feed.advance(k):
+    snaps = recording["snapshots"]
+    for k, snap in enumerate([*snaps, snaps[-1]]):  # the last twice: the daemon merges again to confirm
+        if not feed.advance(min(k, len(snaps) - 1)):
             continue
+        if k == len(snaps) and not merger.status()["provisional"]:
+            break
         merger.merge_once(snap["tag"])
         for b in others:
             truth = snap["truth"].get((vehicle_id, b))
@@ -189,7 +200,8 @@ def replay(recording: dict, rules: str, tol_m: float, tol_deg: float) -> dict:
     """Every drone's Merger of one recording under one rule set, summed up."""
     row = {"recording": recording["name"], "rules": rules, "drones": len(recording["drones"]),
            "snapshots": len(recording["snapshots"]), "pairs": 0, "right": 0, "wrong": 0,
-           "not_merged": 0, "wrong_states": 0, "cpu_s": 0.0, "full_registrations": 0, "rechecks": 0,
+           "not_merged": 0, "wrong_states": 0, "held_states": 0, "cpu_s": 0.0, "full_registrations": 0,
+           "rechecks": 0,
            "detail": {}}
     for a in recording["drones"]:
         drone = replay_drone(recording, a, rules, tol_m, tol_deg)
@@ -201,12 +213,15 @@ def replay(recording: dict, rules: str, tol_m: float, tol_deg: float) -> dict:
             row["right" if pair["final"] == "right" else "wrong" if pair["final"] == "wrong"
                 else "not_merged"] += 1
             row["wrong_states"] += pair["history"].count(STATE_CHARS["wrong"])
+            row["held_states"] += sum(pair["history"].count(STATE_CHARS[s])
+                                      for s in ("right held", "wrong held"))
             row["detail"][f"{a}<-{b}"] = pair
     row["cpu_s"] = round(row["cpu_s"], 2)
     return row
 
 
 COLUMNS = ("recording", "rules", "snapshots", "pairs", "right", "wrong", "not_merged", "wrong_states",
+           "held_states",
            "cpu_s", "full_registrations", "rechecks")
 
 
@@ -215,7 +230,8 @@ def table(rows: list[dict]) -> str:
     widths = [max(len(c), *(len(str(r[c])) for r in rows)) for c in COLUMNS]
     lines = ["  ".join(c.rjust(w) for c, w in zip(COLUMNS, widths, strict=True))]
     lines += ["  ".join(str(r[c]).rjust(w) for c, w in zip(COLUMNS, widths, strict=True)) for r in rows]
-    lines.append("pair histories per snapshot (R right, W wrong, . not merged):")
+    lines.append("pair histories per snapshot (R right, W wrong, . not merged; r, w: provisional, held out "
+                 "of the global map):")
     for r in rows:
         lines.append(f"  {r['recording']} {r['rules']}: "
                      + ", ".join(f"{pair} {p['history']}" for pair, p in r["detail"].items()))
@@ -228,7 +244,7 @@ def parse(argv=None) -> argparse.Namespace:
     mode = ap.add_mutually_exclusive_group(required=True)
     mode.add_argument("--record", type=Path, metavar="DIR", help="fly one recording into DIR")
     mode.add_argument("--replay", type=Path, nargs="+", metavar="DIR", help="replay these recordings")
-    ap.add_argument("--rules", default="old,new", help=f"rule sets to replay, of {','.join(RULES)}")
+    ap.add_argument("--rules", default="old,rechecks,new", help=f"rule sets to replay, of {','.join(RULES)}")
     ap.add_argument("--tol-m", type=float, default=0.3)
     ap.add_argument("--tol-deg", type=float, default=3.0)
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "merge_replay.json")
@@ -263,8 +279,9 @@ def main(argv=None) -> list[dict] | None:
             rows.append(replay(recording, rules, args.tol_m, args.tol_deg))
     print(table(rows))
     report = {"tol_m": args.tol_m, "tol_deg": args.tol_deg,
-              "rules": {k: {"conflict_weight": p.conflict_weight, "recheck_growth": g}
-                        for k, (p, g) in RULES.items()},
+              "rules": {k: {"conflict_weight": p.conflict_weight, "recheck_growth": g,
+                            "confirm_before_fusing": c}
+                        for k, (p, g, c) in RULES.items()},
               "rows": rows}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=1))

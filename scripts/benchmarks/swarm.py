@@ -79,8 +79,9 @@ def judge_offsets(offsets: dict, truths: dict[int, np.ndarray], tol_m: float, to
         vid = int(key)
         if vid not in truths:
             continue
-        if not o.get("accepted"):
-            out["refused"][vid] = f"{o.get('reason')} (score {o.get('score')})"
+        if not o.get("accepted") or o.get("provisional"):
+            why = "provisional, held out of the global map" if o.get("accepted") else o.get("reason")
+            out["refused"][vid] = f"{why} (score {o.get('score')})"
             continue
         te, re = offset_errors(o["transform"], truths[vid])
         out["accepted"].append(vid)
@@ -104,8 +105,9 @@ def gave_up(earlier: dict, later: dict, ids: list[int]) -> bool:
 
 
 def accepted_offsets(status: dict) -> set[int]:
-    """Vehicle ids this daemon's last merge accepted into its global map."""
-    return {int(k) for k, o in status.get("merges", {}).get("offsets", {}).items() if o.get("accepted")}
+    """Vehicle ids this daemon's last merge accepted into its global map (not provisional ones)."""
+    return {int(k) for k, o in status.get("merges", {}).get("offsets", {}).items()
+            if o.get("accepted") and not o.get("provisional")}
 
 
 def holds_global(status: dict, ids: list[int]) -> bool:

@@ -47,7 +47,7 @@ STATUS = {
                                "announced_bytes": 3 << 20}]},
     "merges": {"done": 10, "failed": 1, "deferred": 2, "full_registrations": 3, "hinted": 7, "hinted_own": 5,
                "hinted_peer": 2, "hint_rejected": 1, "rechecks": 2, "cpu_s": 4.25, "distributed": True,
-               "contested": [5]},
+               "contested": [5], "provisional": [4, 6]},
     "memory": {
         "budget_bytes": 512 << 20,
         "rss_bytes": 200 << 20,
@@ -110,10 +110,12 @@ def test_status_table_and_json(daemon, capsys):
     assert "20 x 16 x 8 = 2560 cells at 0.1 m, 1900 known (74.2 %), version 41" in out
     assert "1234 in, 12 dropped, 3 rejected" in out
     assert "10 done, 1 failed, 2 deferred" in out
-    assert "receiving   map from vehicle 5 at 10.42.0.5: 40.0 KiB of 3.0 MiB\n" in out
+    assert "receiving    map from vehicle 5 at 10.42.0.5: 40.0 KiB of 3.0 MiB\n" in out
     assert "3 full registrations, 7 hinted (2 by peers' results), 1 hints refused, 2 rechecks, " \
         "4.25 s CPU\n" in out
-    assert "contested   maps that fit ours two ways, left out: vehicle 5\n" in out
+    assert "provisional  merges found, held out of the global map until confirmed: vehicle 4, " \
+        "vehicle 6\n" in out
+    assert "contested    maps that fit ours two ways, left out: vehicle 5\n" in out
     assert "RSS 200.0 MiB of 512.0 MiB budget" in out and "2 reservations refused" in out
     assert "nice 0 (asked -5: EPERM)" in out and "nice 10\n" in out
     assert main(["status", "--json", "--socket", daemon]) == 0

@@ -1,51 +1,12 @@
 """The Merger searches a merged map again once the pair grew (recheck_growth), its known transform
 competing, and leaves out a map whose search found two fits until one wins (contested)."""
 
-import json
-from pathlib import Path
-from types import SimpleNamespace
-
 import numpy as np
-import pytest
+from merger_flip import Feed
+from merger_flip import flip_merger as _merger
 
-from coopd.daemon.budget import MemoryBudget
-from coopd.daemon.merger import Merger
 from coopd.geometry import rotation_angle_deg
-from coopd.io.cmap import load_cmap
 from coopd.merging import GlobalMergeResult, MergeResult, merge_all
-from coopd.sharing.wire import MapMeta, encode_map
-
-DATA = Path(__file__).parents[1] / "merging" / "data" / "small_house_flip"
-
-
-@pytest.fixture(scope="module")
-def flip():
-    info = json.loads((DATA / "truth.json").read_text())
-    maps = {name: [load_cmap(DATA / f"{name}_{i}.cmap")[0] for i in (1, 2)] for name in ("early", "later")}
-    return maps, np.array(info["truth_1_from_2"]), np.array(info["accepted_early_1_from_2"])
-
-
-class Feed:
-    """What the Merger reads: our local map and the one received map, switchable between stages."""
-
-    def __init__(self, maps, stage="early"):
-        self.maps, self.stage, self.version = maps, stage, 1
-
-    def set(self, stage):
-        self.stage, self.version = stage, self.version + 1
-
-    def local(self):
-        return self.maps[self.stage][0].copy(), self.version
-
-    def received(self):
-        grid = self.maps[self.stage][1]
-        return [SimpleNamespace(vehicle_id=2, version=self.version,
-                                data=encode_map(grid, MapMeta(2, self.version)))]
-
-
-def _merger(feed, merge_fn, **kw):
-    return Merger(1, feed.local, feed.received, MemoryBudget(256 << 20, baseline_bytes=0), period_s=3600,
-                  merge_fn=merge_fn, distributed=False, **kw)
 
 
 def _offset(m):

@@ -1,5 +1,5 @@
 """scripts/benchmarks/merge_replay.py: a two-snapshot recording made of the committed small_house
-flip pair, replayed through the Merger under both rule sets."""
+flip pair, replayed through the Merger under every rule set."""
 
 import importlib.util
 import json
@@ -41,20 +41,24 @@ def test_judge_tells_right_wrong_and_not_merged():
 
     assert merge_replay.judge(entry(near), truth, 0.3, 3.0)[0] == "right"
     assert merge_replay.judge(entry(flipped), truth, 0.3, 3.0)[0] == "wrong"
+    assert merge_replay.judge({**entry(flipped), "provisional": True}, truth, 0.3, 3.0)[0] == "wrong held"
     assert merge_replay.judge(entry(near, accepted=False), truth, 0.3, 3.0) == ("none", None)
     assert merge_replay.judge(None, truth, 0.3, 3.0) == ("none", None)
 
 
-def test_replay_runs_both_rule_sets_and_the_new_rules_end_with_both_pairs_right(tmp_path, capsys):
+def test_replay_runs_every_rule_set_and_the_new_rules_end_with_both_pairs_right(tmp_path, capsys):
     out = tmp_path / "merge_replay.json"
     rows = merge_replay.main(["--replay", str(recording(tmp_path / "flip")), "--out", str(out)])
-    assert [r["rules"] for r in rows] == ["old", "new"]
+    assert [r["rules"] for r in rows] == ["old", "rechecks", "new"]
     assert all(r["pairs"] == 2 and r["snapshots"] == 2 for r in rows)
     assert all(r["right"] + r["wrong"] + r["not_merged"] == 2 for r in rows)
-    old, new = rows
-    assert new["right"] == 2 and new["wrong"] == 0 and new["rechecks"] >= 1
-    assert old["rechecks"] == 0
-    assert all(len(p["history"]) == 2 for p in new["detail"].values())
+    old, rechecks, new = rows
+    assert rechecks["right"] == 2 and rechecks["rechecks"] >= 1 and old["rechecks"] == 0
+    assert new["right"] == 2 and new["wrong"] == 0 and new["wrong_states"] == 0
+    assert rechecks["held_states"] == 0 and new["held_states"] >= 2  # every first fit held
+    assert all(len(p["history"]) == 2 for p in rechecks["detail"].values())
+    assert all(len(p["history"]) == 3 for p in new["detail"].values())  # one merge more, to confirm
     report = json.loads(out.read_text())
-    assert report["rules"]["old"] == {"conflict_weight": 3.0, "recheck_growth": None}
+    assert report["rules"]["old"] == {"conflict_weight": 3.0, "recheck_growth": None,
+                                      "confirm_before_fusing": False}
     assert "flip" in capsys.readouterr().out

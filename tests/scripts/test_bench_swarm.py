@@ -17,10 +17,11 @@ swarm = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(swarm)
 
 
-def status(vid, held=(), accepted=(), refused=(), transforms=None):
+def status(vid, held=(), accepted=(), refused=(), transforms=None, provisional=()):
     """A daemon status reduced to what the checks read."""
     transforms = transforms or {}
-    offsets = {str(v): {"accepted": True, **offset_summary(transforms.get(v, np.eye(4)))} for v in accepted}
+    offsets = {str(v): {"accepted": True, "provisional": v in provisional,
+                        **offset_summary(transforms.get(v, np.eye(4)))} for v in accepted}
     offsets |= {str(v): {"accepted": False, **offset_summary(np.eye(4))} for v in refused}
     peers = [{"vehicle_id": v, "map_version": 1} for v in held] + [{"vehicle_id": 99, "map_version": None}]
     return {"vehicle_id": vid, "peers": peers, "merges": {"offsets": offsets}}
@@ -38,6 +39,7 @@ def test_holds_global_counts_only_accepted_offsets():
     assert swarm.holds_global(status(1, accepted=[2, 3]), ids)
     assert not swarm.holds_global(status(1, accepted=[2], refused=[3]), ids)
     assert swarm.accepted_offsets(status(3, accepted=[1], refused=[2])) == {1}
+    assert not swarm.holds_global(status(1, accepted=[2, 3], provisional=[3]), ids)  # held out of it
 
 
 def test_judge_offsets_tells_correct_from_wrong_merges():
@@ -51,6 +53,9 @@ def test_judge_offsets_tells_correct_from_wrong_merges():
     te, re = j["errors"][2]
     assert abs(te - 0.1) < 1e-3 and abs(re - 1.0) < 0.01
     assert abs(j["errors"][3][1] - 180.0) < 0.01
+    held = status(1, accepted=[2], provisional=[2])["merges"]["offsets"]
+    j = swarm.judge_offsets(held, {2: truth2}, 0.3, 3.0)
+    assert j["accepted"] == [] and j["refused"][2].startswith("provisional")
 
 
 def test_offset_errors_reads_the_status_transform_row_major():
