@@ -23,7 +23,9 @@ searched again with its hints competing (contest=...): a fit picked on small ear
 symmetric building does not live on. A search that finds two fits leaves the map out (contested).
 With confirm_before_fusing, a fit newly found by a search is provisional: reported, but held out of
 the global map (merge_all(hold=...)) and not published until a recheck on grown maps finds it again
-or the maps stop growing. Early wrong fits then never reach the global map.
+or the maps stop growing. Early wrong fits then never reach the global map. A merge that finds no
+map changed since the one that held fits (the maps settled) confirms them without searching again
+(the search is deterministic) and fuses them into the global map.
 """
 
 import logging
@@ -36,7 +38,7 @@ import numpy as np
 
 from coopd.daemon.budget import BudgetExceeded, MemoryBudget
 from coopd.geometry import rotation_angle_deg
-from coopd.grid import OccupancyGrid
+from coopd.grid import OCCUPIED_THRESHOLD, OccupancyGrid, fuse_transformed
 from coopd.sharing.wire import (
     DEFAULT_LIMITS,
     EDGE_FULL,
@@ -149,6 +151,10 @@ class Merger:
         maps recheck_growth times larger finds it again or the pair stops growing."""
         self._provisional: set[int] = set()
         """Vehicles whose accepted transform is provisional: reported, held out of the global map."""
+        self._held_inputs: tuple | None = None
+        """inputs() of the merge that left maps provisional: the same again means they settled."""
+        self._edges: dict[int, MergeEdge] = {}
+        """Vehicle id -> edge of its accepted transform at the last merge (published once confirmed)."""
         self._first_seen: dict[int, float] = {}
         self._unmerged: set[int] = set()
         self._deferring = False
@@ -304,6 +310,10 @@ class Merger:
         if not stored:
             self._set_global(None)
             return "nothing", "no received maps: the global map is the local map"
+        inputs = self.inputs()
+        settled = inputs is not None and inputs == self._held_inputs
+        if self._provisional and self._global is not None and settled:
+            return self._confirm_settled(stored)
         infos = sorted(((m, peek(m.data)) for m in stored), key=lambda mi: mi[0].vehicle_id)
         for _, info in infos:
             info.check(self.limits)
@@ -353,6 +363,8 @@ class Merger:
         self._decide(vids, result.results, sizes)
         self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
         edges = self._remember([m for m, _ in infos], result.results, local_version)
+        self._edges = {e.b: e for e in edges}
+        self._held_inputs = inputs if held else None
         self._publish([e for e in edges if e.b not in held])
         if not self.budget.reserve("global", merged.size):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
@@ -368,6 +380,33 @@ class Merger:
             f"{len(accepted)} of {len(infos)} received maps merged {accepted} (local v{local_version}, "
             f"{rounds}); global {'x'.join(map(str, merged.shape))} cells"
         )
+
+    def _confirm_settled(self, stored: list) -> tuple[str, str]:
+        """No map changed since the merge that held maps provisional: the pairs settled. A search
+        would find the same fits again, so confirm them and fuse them into the global map."""
+        held = [m for m in sorted(stored, key=lambda m: m.vehicle_id) if m.vehicle_id in self._provisional]
+        grid = self._global[0]
+        need = SCRATCH_BYTES_PER_CELL * (grid.size + sum(peek(m.data).cells for m in held))
+        threshold = getattr(self.params, "occupied_threshold", OCCUPIED_THRESHOLD)
+        try:
+            with self.budget.scratch("merge-scratch", need):
+                merged = grid.copy()
+                for m in held:
+                    fuse_transformed(merged, decode_map(m.data, self.limits)[0], self._accepted[m.vehicle_id],
+                                     threshold)
+        except BudgetExceeded as e:
+            return "deferred", f"over the memory budget: {e}"
+        if not self.budget.reserve("global", merged.size):
+            return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
+        for m in held:
+            self.offsets[m.vehicle_id] = {**self.offsets[m.vehicle_id], "provisional": False}
+            log.info("vehicle %d: provisional merge confirmed (no map changed since it was found); fused "
+                     "into the global map", m.vehicle_id)
+        self._provisional, self._held_inputs = set(), None
+        self._publish(list(self._edges.values()))
+        self._set_global((merged, MapMeta(self.vehicle_id, self._global[1].version + 1, time.time())))
+        return "done", (f"{len(held)} provisional merges confirmed {[m.vehicle_id for m in held]} (no map "
+                        f"changed); global {'x'.join(map(str, merged.shape))} cells")
 
     def _hints(self, vids: list[int]) -> list[list]:
         """Hints per input map: own last accepted transforms, and peers' results when distributed."""
