@@ -22,8 +22,8 @@ DEFAULT_BLOCK_SIZE = 4096
 MIN_BLOCK_SIZE = 64
 """Small enough for any sane link, large enough for the hello and a stop frame with a tag."""
 MAX_BLOCK_SIZE = 1 << 20
-PROTOCOL_VERSION = 1
-"""coopd's MTP extension version, carried in the hello."""
+PROTOCOL_VERSION = 2
+"""coopd's MTP extension version, carried in the hello (2: a keyed server signs its hello)."""
 
 HEAD = struct.Struct("<BBi")
 """marker, frame type, int32 count: bytes 0-5 of every control frame."""
@@ -32,6 +32,8 @@ HELLO_BODY = struct.Struct("<BBi16sQ")
 nonce, instance id (random per process start: a changed one means the peer lost its state)."""
 OFFER_BODY = struct.Struct("<Q")
 """after HEAD (whose count is the origin vehicle id): the map version offered."""
+HELLO_TAG = struct.Struct("<16s")
+"""after HELLO_BODY (bytes 36-51): a keyed server's hello tag (swarmkey.hello_tag); zero otherwise."""
 HELLO_FLAG_KEY = 0x01
 TAG_HMAC_SHA256 = 0x01
 """Stop frame byte 6: a 32-byte HMAC-SHA256 tag follows in bytes 7-38."""
@@ -58,6 +60,8 @@ class Hello:
     keyed: bool
     instance: int = 0
     version: int = PROTOCOL_VERSION
+    tag: bytes | None = None
+    """A keyed server's proof that it holds the swarm key (the sender's hello carries none)."""
 
 
 @dataclass(frozen=True)
@@ -111,6 +115,10 @@ def hello_frame(hello: Hello) -> bytes:
     """The hello frame; its count field is the sender's block size so a mismatch shows at once."""
     flags = HELLO_FLAG_KEY if hello.keyed else 0
     body = HELLO_BODY.pack(hello.version, flags, hello.vehicle_id, hello.nonce, hello.instance)
+    if hello.tag is not None:
+        if len(hello.tag) != HELLO_TAG.size:
+            raise ValueError(f"hello tag must be {HELLO_TAG.size} bytes, got {len(hello.tag)}")
+        body += HELLO_TAG.pack(hello.tag)
     return _control(HELLO, hello.block_size, hello.block_size, body)
 
 
@@ -151,7 +159,9 @@ def parse_hello(frame) -> Hello:
     version, flags, vehicle_id, nonce, instance = HELLO_BODY.unpack_from(frame, HEAD.size)
     if version < 1:
         raise MtpError("frame", f"hello protocol version {version} does not exist")
-    return Hello(block_size, vehicle_id, bytes(nonce), bool(flags & HELLO_FLAG_KEY), instance, version)
+    (tag,) = HELLO_TAG.unpack_from(frame, HEAD.size + HELLO_BODY.size)
+    return Hello(block_size, vehicle_id, bytes(nonce), bool(flags & HELLO_FLAG_KEY), instance, version,
+                 None if _all_zero(tag) else bytes(tag))
 
 
 def parse_ack(frame) -> tuple[int, int]:

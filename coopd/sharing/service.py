@@ -225,6 +225,8 @@ class SharingService:
         if summary.cells > s.max_cells:
             raise Rejected("oversize", f"{summary.cells} cells, limit {s.max_cells}")
         via = arrival.peer_vehicle_id if arrival.peer_vehicle_id is not None else summary.vehicle_id
+        if arrival.peer_vehicle_id is not None:
+            self._forgive(arrival.address)
         if summary.kind == "result":
             return self._accept_result(arrival, summary, via)
         nbytes = summary.size
@@ -355,6 +357,13 @@ class SharingService:
                 self._backoff.pop(sender.target, None)
             if sender.vid is not None and self._senders.get(sender.vid) is sender:
                 del self._senders[sender.vid]
+
+    def _forgive(self, host: str) -> None:
+        """A hello'd peer at host just got a transfer through (with the key, if one is set): whatever
+        failed our handshakes with it (a wrong key, since fixed) is over, so scan it again at once."""
+        with self._lock:
+            for target in [t for t in self._backoff if t[0] == host]:
+                del self._backoff[target]
 
     def _mark_self(self, target) -> None:
         with self._lock:

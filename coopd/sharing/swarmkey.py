@@ -1,5 +1,6 @@
 """The optional swarm key: an HMAC-SHA256 tag per transfer, bound to the connection's nonces
-and the transfer's sequence number so a recorded transfer cannot be replayed (docs/sharing.md)."""
+and the transfer's sequence number so a recorded transfer cannot be replayed, and a tag on a
+server's hello so that no host without the key can pose as a vehicle's map server (docs/sharing.md)."""
 
 import hashlib
 import hmac
@@ -7,6 +8,9 @@ import os
 import struct
 
 CONTEXT = b"coopd-mtp/1 transfer"
+HELLO_CONTEXT = b"coopd-mtp/2 hello"
+HELLO_TAG_SIZE = 16
+"""HMAC-SHA256 truncated to 128 bits: it fits a hello in the smallest block (64 bytes)."""
 NONCE_SIZE = 16
 
 
@@ -56,6 +60,15 @@ def transfer_tag(key: bytes, receiver_nonce: bytes, sender_nonce: bytes, seq: in
     if padding:
         mac.update(bytes(padding))
     return mac.digest()
+
+
+def hello_tag(key: bytes, sender_nonce: bytes, server_nonce: bytes, vehicle_id: int, instance: int,
+              block_size: int, version: int) -> bytes:
+    """A server's hello tag: HMAC-SHA256 over context, the sender's nonce (fresh, so a recorded
+    hello cannot be replayed), the server's nonce and every field of its hello, truncated."""
+    mac = hmac.new(key, HELLO_CONTEXT + sender_nonce + server_nonce
+                   + struct.pack("<iQiB", vehicle_id, instance, block_size, version), hashlib.sha256)
+    return mac.digest()[:HELLO_TAG_SIZE]
 
 
 def tag_is_valid(expected: bytes, got: bytes | None) -> bool:

@@ -307,12 +307,15 @@ class _Connection:
         self.reasm = Reassembler(self.s.block_size, self.s.max_bytes,
                                  server._budget.reserve, server._budget.release)
         self.hello: Hello | None = None
+        self.identified = False
+        """The hello's vehicle id is trusted: no swarm key, or a transfer verified with it."""
         self.nonce = swarmkey.new_nonce()
         self.seq = 0
 
     @property
     def vehicle_id(self) -> int | None:
-        return None if self.hello is None else self.hello.vehicle_id
+        """The sender's vehicle id once trusted (failures before that are charged to the address)."""
+        return self.hello.vehicle_id if self.identified else None
 
     def run(self) -> None:
         cause, detail = None, ""
@@ -407,14 +410,25 @@ class _Connection:
         s = self.s
         self.hello = hello
         keyed = s.swarm_key is not None
-        reply = Hello(s.block_size, self.server.vehicle_id, self.nonce, keyed, self.server.instance)
+        tag = None
+        if keyed:  # prove we hold the key: the sender trusts our vehicle id only then
+            tag = swarmkey.hello_tag(s.swarm_key, hello.nonce, self.nonce, self.server.vehicle_id,
+                                     self.server.instance, s.block_size, mtp.PROTOCOL_VERSION)
+        reply = Hello(s.block_size, self.server.vehicle_id, self.nonce, keyed, self.server.instance, tag=tag)
         self._send(mtp.hello_frame(reply))
         if hello.keyed != keyed:
             raise Rejected("auth", f"swarm key mismatch: peer key {'on' if hello.keyed else 'off'}, "
                                    f"ours {'on' if keyed else 'off'}")
-        if hello.vehicle_id != self.server.vehicle_id:  # our own scan reaching our own server
-            self.server.peers.seen(hello.vehicle_id)
-            log.info("peer vehicle %d connected from %s", hello.vehicle_id, self.address)
+        if not keyed:  # keyed: the sender's vehicle id counts once a transfer proved its key
+            self._seen()
+
+    def _seen(self) -> None:
+        """The peer is who its hello says (no key, or its first transfer verified): count it seen."""
+        vid = self.hello.vehicle_id
+        if vid != self.server.vehicle_id and not self.identified:  # not our own scan reaching us
+            self.server.peers.seen(vid)
+            log.info("peer vehicle %d connected from %s", vid, self.address)
+        self.identified = True
 
     def _on_transfer(self, t: Transfer, seconds: float) -> None:
         s = self.s
@@ -425,6 +439,7 @@ class _Connection:
             if not swarmkey.tag_is_valid(expected, t.tag):
                 self._ack(t.blocks, mtp.ACK_REJECTED)
                 raise Rejected("auth", "missing or invalid HMAC tag" if t.tag else "transfer has no HMAC tag")
+            self._seen()
         try:
             status = self.server._accept(Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds,
                                                  t.buffer))
@@ -489,6 +504,13 @@ class PeerLink:
         if peer.keyed != (s.swarm_key is not None):
             raise MtpError("auth", f"swarm key mismatch: peer key {'on' if peer.keyed else 'off'}, "
                                    f"ours {'on' if s.swarm_key else 'off'}")
+        if s.swarm_key is not None:
+            expected = swarmkey.hello_tag(s.swarm_key, self.nonce, peer.nonce, peer.vehicle_id,
+                                          peer.instance, bs, peer.version)
+            if not swarmkey.tag_is_valid(expected, peer.tag):
+                raise MtpError("auth", f"peer claiming vehicle {peer.vehicle_id} did not prove the swarm key "
+                                       f"in its hello ({'invalid' if peer.tag else 'no'} tag; protocol "
+                                       f"version {peer.version}, ours {mtp.PROTOCOL_VERSION})")
         self.peer = peer  # set only once the handshake succeeded
         return peer
 

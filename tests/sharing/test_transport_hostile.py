@@ -8,7 +8,7 @@ import time
 
 import pytest
 import sharing_testmsg as tm
-from sharing_support import failures, service, settings, wait_until
+from sharing_support import failures, free_port, service, settings, wait_until
 
 from coopd.sharing import mtp
 from coopd.sharing.transport import DropLog, PeerLink
@@ -288,3 +288,82 @@ def test_a_hostile_host_fills_the_counters_not_the_log(server, caplog):
         assert wait_until(lambda: failures(svc).get("frame") == 12, 3), failures(svc)
     dropped = [r for r in caplog.records if "dropped" in r.getMessage()]
     assert len(dropped) == svc._server.drops.burst and svc._server.drops.held_back == 12 - len(dropped)
+
+
+class Impostor:
+    """A host without the swarm key posing as vehicle 2's map server: it answers every hello as a
+    keyed vehicle 2 and acks every transfer as stored (bounded: max_conns connections, each read
+    with a 0.5 s timeout until it closes)."""
+
+    def __init__(self, host: str, port: int, bs: int, max_conns: int = 20):
+        self.bs, self.transfers, self.hellos = bs, 0, 0
+        self.listener = socket.create_server((host, port))
+        self.listener.settimeout(0.2)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, args=(max_conns,), daemon=True)
+        self.thread.start()
+
+    def _serve(self, max_conns: int) -> None:
+        served = 0
+        while not self.stop.is_set() and served < max_conns:
+            try:
+                conn, _ = self.listener.accept()
+            except TimeoutError:
+                continue
+            served += 1
+            with conn:
+                conn.settimeout(0.5)
+                try:
+                    self._talk(conn)
+                except OSError:
+                    pass
+
+    def _frame(self, conn) -> bytes:
+        buf = b""
+        while len(buf) < self.bs:
+            chunk = conn.recv(self.bs - len(buf))
+            if not chunk:
+                raise ConnectionError("closed")
+            buf += chunk
+        return buf
+
+    def _talk(self, conn) -> None:
+        self._frame(conn)  # the sender's hello
+        self.hellos += 1
+        conn.sendall(mtp.hello_frame(mtp.Hello(self.bs, 2, os.urandom(16), True, 7)))  # keyed, no tag
+        for _ in range(1000):
+            _, kind, blocks = mtp.HEAD.unpack_from(self._frame(conn))
+            if kind == mtp.OFFER:
+                conn.sendall(mtp.ack_frame(0, mtp.ACK_OK, self.bs))
+            elif kind == mtp.START:
+                for _ in range(blocks + 1):  # the data blocks and the stop frame
+                    self._frame(conn)
+                self.transfers += 1
+                conn.sendall(mtp.ack_frame(blocks, mtp.ACK_OK, self.bs))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5)
+        self.listener.close()
+
+
+def test_an_impostor_without_the_key_cannot_pose_as_a_vehicle_and_keep_its_maps_away():
+    key = b"k" * 32
+    port = free_port("127.0.0.31")
+    impostor = Impostor("127.0.0.33", port, BS)
+    a = service(1, "127.0.0.31", port, peers=["127.0.0.31-127.0.0.33"], peer_ports=[port], swarm_key=key,
+                block_size=BS).start()
+    b = None
+    try:
+        a.publish(tm.make(1, 1, b"a" * 1000), 1)
+        assert wait_until(lambda: impostor.hellos >= 1, 5)  # a scanned the impostor first
+        b = service(2, "127.0.0.32", port, peers=["127.0.0.31"], peer_ports=[port], swarm_key=key,
+                    block_size=BS).start()
+        assert wait_until(lambda: b.received.version(1) == 1, 5), a.stats()
+        assert impostor.transfers == 0
+        assert a.peers.snapshot()["unidentified_failures"]["127.0.0.33"].get("auth", 0) >= 1
+    finally:
+        for svc in (a, b):
+            if svc is not None:
+                svc.stop()
+        impostor.close()
