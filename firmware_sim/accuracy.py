@@ -106,4 +106,5 @@ def drift_since(odometry, t_origin: float, t_end: float) -> tuple[float, float]:
     of a map's error (an accuracy limit, not a bug)."""
     p0 = odometry.drift(t_origin)[1].copy()
     p1 = odometry.drift(t_end)[1]
-    return float(np.linalg.norm(p1 - p0)), abs(math.degrees(odometry.drift_yaw_rate * (t_end - t_origin)))
+    turned = odometry.drift_yaw_rate * (odometry.drift_time(t_end) - odometry.drift_time(t_origin))
+    return float(np.linalg.norm(p1 - p0)), abs(math.degrees(turned))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -15,7 +16,8 @@ WORLD_ORIGIN_LLA = (47.397742, 8.545594, 488.0)  # PX4 SITL's default home, mapp
 
 @dataclass(frozen=True)
 class NoiseConfig:
-    """Odometry error model: white noise on each report plus a slow drift of the estimate's frame."""
+    """Odometry error model: white noise on each report plus a slow drift of the estimate's frame
+    (drift rates per second of flight: a disarmed vehicle at rest does not drift, see OdometryModel)."""
 
     pos_sigma_m: float = 0.01
     vel_sigma_m_s: float = 0.02
@@ -50,11 +52,34 @@ class OdometryModel:
         self.drift_yaw_rate = float(rng.normal(0, 1) * noise.drift_yaw_rad_s)
         self._noise_rng = np.random.default_rng(rng.integers(1 << 62))
         self._drift_cache: tuple = (None, None, None)
+        self._breaks: list[tuple[float, float, bool]] = [(0.0, 0.0, True)]
+        """(sim time, drift time at it, drifting after it): one entry per change; drifting by default."""
+        self._break_times = [0.0]
+
+    def set_drifting(self, t: float, drifting: bool) -> None:
+        """From sim time t on, the estimate drifts (flying) or holds (at rest on the ground: an
+        estimator with zero-velocity updates, as PX4's EKF2 while landed, does not wander)."""
+        last_t, last_tau, last_on = self._breaks[-1]
+        if drifting == last_on or t < last_t:
+            return
+        self._breaks.append((t, last_tau + (t - last_t if last_on else 0.0), drifting))
+        self._break_times.append(t)
+        self._drift_cache = (None, None, None)
+
+    def drift_time(self, t: float) -> float:
+        """Seconds of drifting up to sim time t (the state after the last change lasts)."""
+        i = max(0, bisect.bisect_right(self._break_times, t) - 1)
+        bt, tau, on = self._breaks[i]
+        return tau + (max(0.0, t - bt) if on else 0.0)
+
+    def drifting(self, t: float) -> bool:
+        return self._breaks[max(0, bisect.bisect_right(self._break_times, t) - 1)][2]
 
     def drift(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(rotation, translation) of the estimate's frame error at sim time t (memoised per t)."""
         if self._drift_cache[0] != t:
-            self._drift_cache = (t, rot_z(self.drift_yaw_rate * t), self.drift_vel * t)
+            tau = self.drift_time(t)
+            self._drift_cache = (t, rot_z(self.drift_yaw_rate * tau), self.drift_vel * tau)
         return self._drift_cache[1], self._drift_cache[2]
 
     def estimate(self, t: float, pos_w, rot_w, vel_w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -62,7 +87,8 @@ class OdometryModel:
         rd, pd = self.drift(t)
         fr = self.frame_rot
         p_loc = fr.T @ (np.asarray(pos_w) - self.origin)
-        return rd @ p_loc + pd, rd @ fr.T @ rot_w, rd @ fr.T @ np.asarray(vel_w) + self.drift_vel
+        bias = self.drift_vel if self.drifting(t) else 0.0
+        return rd @ p_loc + pd, rd @ fr.T @ rot_w, rd @ fr.T @ np.asarray(vel_w) + bias
 
     def local_to_world_vector(self, t: float, vec_local) -> np.ndarray:
         """Express a local-estimate-frame vector (e.g. a force) in the world frame."""

@@ -287,6 +287,7 @@ class Simulation:
         d = self.data
         if self.steps % CONTROL_EVERY == 0:
             for v in self.vehicles:
+                v.odometry.set_drifting(self.time, v.fc.armed)  # disarmed on the ground: no drift
                 s = self.estimated_state(v)
                 force_l, torque_b = v.fc.update(self.time, PHYSICS_DT * CONTROL_EVERY, s)
                 force_w = v.odometry.local_to_world_vector(self.time, force_l)

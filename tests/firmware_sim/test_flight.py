@@ -100,6 +100,26 @@ def test_drift_is_seeded_and_slow(house):
     assert 0.0 < np.linalg.norm(a[0]) < 2.0  # metres after a minute
 
 
+def test_drift_runs_only_while_armed(house):
+    """Disarmed on the ground the estimate holds (zero-velocity updates, as PX4's EKF2 when landed);
+    armed it drifts, and the drift of past times does not change."""
+    sim = Simulation(house, 1, seed=4, mavlink=False, camera=None, noise="default")
+    odo = sim.vehicles[0].odometry
+    sim.step(5.0)  # disarmed
+    assert odo.drift_time(sim.time) == 0.0 and not np.any(odo.drift(sim.time)[1])
+    t_arm = sim.time
+    sim.vehicles[0].fc.armed = True
+    sim.step(4.0)
+    assert abs(odo.drift_time(sim.time) - (sim.time - t_arm)) < 0.05
+    moved = odo.drift(sim.time)[1].copy()
+    np.testing.assert_allclose(moved, odo.drift_vel * odo.drift_time(sim.time))
+    t_land = sim.time
+    sim.vehicles[0].fc.armed = False
+    sim.step(3.0)
+    np.testing.assert_allclose(odo.drift(sim.time)[1], odo.drift(t_land)[1], atol=1e-12)
+    assert odo.drift_time(t_arm) == 0.0 and odo.drift_time(2.0) == 0.0
+
+
 def test_reported_noise_is_seeded():
     from firmware_sim.odometry import OdometryModel
 
