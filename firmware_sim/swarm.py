@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from coopd.daemon import control
+from coopd.daemon.merger import in_global_map
 from coopd.geometry import invert
 from firmware_sim import accuracy as acc
 from firmware_sim.netns import LoopbackLab, NetnsLab, netns_unavailable_reason, remove_stale
@@ -367,7 +368,7 @@ class Swarm:
         """Vehicle id -> offset entry of every map merged into a daemon's global map (provisional
         merges, held out of it, do not count)."""
         offsets = ((s or {}).get("merges") or {}).get("offsets") or {}
-        return {int(k): v for k, v in offsets.items() if v.get("accepted", True) and not v.get("provisional")}
+        return {int(k): v for k, v in offsets.items() if in_global_map(v)}
 
     def converged(self) -> bool:
         """Every daemon has merged every other drone's map."""

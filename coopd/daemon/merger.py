@@ -73,6 +73,12 @@ def find_merge_all() -> Callable | None:
     return merge_all
 
 
+def in_global_map(entry: dict) -> bool:
+    """Whether a status merges.offsets entry's map is fused into the global map: accepted, and not
+    provisional (held out until confirmed)."""
+    return bool(entry.get("accepted")) and not entry.get("provisional")
+
+
 def offset_summary(transform) -> dict:
     """A transform as an operator reads it: translation in metres and yaw in degrees."""
     t = np.asarray(transform, dtype=np.float64)
@@ -311,8 +317,8 @@ class Merger:
             self._set_global(None)
             return "nothing", "no received maps: the global map is the local map"
         inputs = self.inputs()
-        settled = inputs is not None and inputs == self._held_inputs
-        if self._provisional and self._global is not None and settled:
+        unchanged = inputs is not None and inputs == self._held_inputs
+        if self._provisional and self._global is not None and unchanged:
             return self._confirm_settled(stored)
         infos = sorted(((m, peek(m.data)) for m in stored), key=lambda mi: mi[0].vehicle_id)
         for _, info in infos:
@@ -366,12 +372,10 @@ class Merger:
         self._edges = {e.b: e for e in edges}
         self._held_inputs = inputs if held else None
         self._publish([e for e in edges if e.b not in held])
-        if not self.budget.reserve("global", merged.size):
+        if not self._install_global(merged):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
         self.offsets = offsets
-        version = (self._global[1].version + 1) if self._global is not None else 1
-        self._set_global((merged, MapMeta(self.vehicle_id, version, time.time())))
-        accepted = [v for v, o in offsets.items() if o["accepted"] and not o["provisional"]]
+        accepted = [v for v, o in offsets.items() if in_global_map(o)]
         how = ", ".join(f"{v} {o['method']}{' rechecked' if k in contest else ''}"
                         f"{' provisional' if o['provisional'] else ''}"
                         for k, (v, o) in enumerate(offsets.items()) if o["accepted"] or k in contest)
@@ -396,7 +400,7 @@ class Merger:
                                      threshold)
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
-        if not self.budget.reserve("global", merged.size):
+        if not self._install_global(merged):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
         for m in held:
             self.offsets[m.vehicle_id] = {**self.offsets[m.vehicle_id], "provisional": False}
@@ -404,7 +408,6 @@ class Merger:
                      "into the global map", m.vehicle_id)
         self._provisional, self._held_inputs = set(), None
         self._publish(list(self._edges.values()))
-        self._set_global((merged, MapMeta(self.vehicle_id, self._global[1].version + 1, time.time())))
         return "done", (f"{len(held)} provisional merges confirmed {[m.vehicle_id for m in held]} (no map "
                         f"changed); global {'x'.join(map(str, merged.shape))} cells")
 
@@ -452,8 +455,12 @@ class Merger:
         if self.recheck_growth is None:
             return False
         decided = self._decided_at.get(vid, size)
-        settled = size < SETTLED_GROWTH * self._last_size.get(vid, 0) and size > SETTLED_RECHECK * decided
+        settled = self._stopped_growing(vid, size) and size > SETTLED_RECHECK * decided
         return size >= self.recheck_growth * decided or settled
+
+    def _stopped_growing(self, vid: int, size: int) -> bool:
+        """The pair's known cells grew less than SETTLED_GROWTH since the last merge."""
+        return size < SETTLED_GROWTH * self._last_size.get(vid, 0)
 
     def _provisional_after(self, vid: int, r, size: int) -> bool:
         """Whether vid's accepted result r, on maps of `size` known cells (its and ours), is held out
@@ -465,7 +472,7 @@ class Merger:
             return False
         from coopd.merging.pair import distinct
 
-        settled = size < SETTLED_GROWTH * self._last_size.get(vid, 0)
+        settled = self._stopped_growing(vid, size)
         method = getattr(r, "method", "full")
         if method == "hint:peer":
             return False
@@ -558,6 +565,14 @@ class Merger:
             if moved > 0.02 or rotation_angle_deg(old[:3, :3].T @ e.transform[:3, :3]) > 0.2:
                 return True
         return False
+
+    def _install_global(self, merged: OccupancyGrid) -> bool:
+        """Make merged the global map, with the next version, if the memory budget holds it."""
+        if not self.budget.reserve("global", merged.size):
+            return False
+        version = (self._global[1].version + 1) if self._global is not None else 1
+        self._set_global((merged, MapMeta(self.vehicle_id, version, time.time())))
+        return True
 
     def _set_global(self, value) -> None:
         with self._cv:

@@ -13,9 +13,10 @@ distributed, merge_all) is fed snapshot after snapshot its local map and the oth
 (a drone's latest dump; versions grow with the snapshots), one merge_once per snapshot, and once more
 on the last one while a merge is provisional (the daemon merges again to confirm). After each, every
 accepted offset is judged against truth["a<-b"]: right within --tol-m and --tol-deg.
-Per recording and rule set: ordered pairs, right / wrong / not merged at the end, snapshot-states
-with a wrong transform in the global map (wrong_states) and with a provisional one held out of it
-(held_states), merge CPU (Merger.cpu_s), full registrations, rechecks.
+Per recording and rule set, and summed per rule set ("all"): ordered pairs, right / wrong / not
+merged at the end, snapshot-states (recorded snapshots only) with a right or a wrong transform in the
+global map (right_states, wrong_states) and with a provisional one held out of it (held_states),
+merge CPU (Merger.cpu_s), full registrations, rechecks.
 Prints a table and writes out/bench/merge_replay.json.
 Usage: scripts/bench merge_replay --replay /tmp/repro/r1 /tmp/repro/sh2 [--rules old,rechecks,new]
        scripts/bench merge_replay --record DIR [--world small_house] [--seed 0] [--drones 2]
@@ -178,7 +179,8 @@ def replay_drone(recording: dict, vehicle_id: int, rules: str, tol_m: float, tol
                     period_s=3600, merge_fn=merge_all, params=params, limits=LIMITS, distributed=False,
                     recheck_growth=recheck_growth, confirm_before_fusing=confirm)
     others = [v for v in recording["drones"] if v != vehicle_id]
-    pairs = {b: {"history": "", "final": "none", "error": None} for b in others}
+    pairs = {b: {"history": "", "recorded": 0, "final": "none", "error": None} for b in others}
+    """recorded: how many history states belong to recorded snapshots (not the merge to confirm)."""
     snaps = recording["snapshots"]
     for k, snap in enumerate([*snaps, snaps[-1]]):  # the last twice: the daemon merges again to confirm
         if not feed.advance(min(k, len(snaps) - 1)):
@@ -192,6 +194,7 @@ def replay_drone(recording: dict, vehicle_id: int, rules: str, tol_m: float, tol
                 continue
             state, err = judge(merger.offsets.get(b), truth, tol_m, tol_deg)
             pairs[b]["history"] += STATE_CHARS[state]
+            pairs[b]["recorded"] += k < len(snaps)
             pairs[b]["final"], pairs[b]["error"] = state, err
     return {"pairs": pairs, "cpu_s": merger.cpu_s, "counters": dict(merger.counters)}
 
@@ -200,9 +203,8 @@ def replay(recording: dict, rules: str, tol_m: float, tol_deg: float) -> dict:
     """Every drone's Merger of one recording under one rule set, summed up."""
     row = {"recording": recording["name"], "rules": rules, "drones": len(recording["drones"]),
            "snapshots": len(recording["snapshots"]), "pairs": 0, "right": 0, "wrong": 0,
-           "not_merged": 0, "wrong_states": 0, "held_states": 0, "cpu_s": 0.0, "full_registrations": 0,
-           "rechecks": 0,
-           "detail": {}}
+           "not_merged": 0, "right_states": 0, "wrong_states": 0, "held_states": 0, "cpu_s": 0.0,
+           "full_registrations": 0, "rechecks": 0, "detail": {}}
     for a in recording["drones"]:
         drone = replay_drone(recording, a, rules, tol_m, tol_deg)
         row["cpu_s"] += drone["cpu_s"]
@@ -212,24 +214,39 @@ def replay(recording: dict, rules: str, tol_m: float, tol_deg: float) -> dict:
             row["pairs"] += 1
             row["right" if pair["final"] == "right" else "wrong" if pair["final"] == "wrong"
                 else "not_merged"] += 1
-            row["wrong_states"] += pair["history"].count(STATE_CHARS["wrong"])
-            row["held_states"] += sum(pair["history"].count(STATE_CHARS[s])
-                                      for s in ("right held", "wrong held"))
+            states = pair["history"][:pair["recorded"]]
+            row["right_states"] += states.count(STATE_CHARS["right"])
+            row["wrong_states"] += states.count(STATE_CHARS["wrong"])
+            row["held_states"] += sum(states.count(STATE_CHARS[s]) for s in ("right held", "wrong held"))
             row["detail"][f"{a}<-{b}"] = pair
     row["cpu_s"] = round(row["cpu_s"], 2)
     return row
 
 
-COLUMNS = ("recording", "rules", "snapshots", "pairs", "right", "wrong", "not_merged", "wrong_states",
-           "held_states",
-           "cpu_s", "full_registrations", "rechecks")
+COLUMNS = ("recording", "rules", "snapshots", "pairs", "right", "wrong", "not_merged", "right_states",
+           "wrong_states", "held_states", "cpu_s", "full_registrations", "rechecks")
+SUMMED = COLUMNS[2:]
+
+
+def totals(rows: list[dict]) -> list[dict]:
+    """One row per rule set ("all" recordings): every count summed, in the order the rules came."""
+    out: dict[str, dict] = {}
+    for r in rows:
+        t = out.setdefault(r["rules"], {"recording": "all", "rules": r["rules"], **dict.fromkeys(SUMMED, 0)})
+        for c in SUMMED:
+            t[c] += r[c]
+    for t in out.values():
+        t["cpu_s"] = round(t["cpu_s"], 2)
+    return list(out.values())
 
 
 def table(rows: list[dict]) -> str:
-    """The rows as a text table, one line per recording and rule set, then each pair's history."""
-    widths = [max(len(c), *(len(str(r[c])) for r in rows)) for c in COLUMNS]
+    """The rows as a text table, one line per recording and rule set and the totals per rule set,
+    then each pair's history."""
+    shown = rows + totals(rows)
+    widths = [max(len(c), *(len(str(r[c])) for r in shown)) for c in COLUMNS]
     lines = ["  ".join(c.rjust(w) for c, w in zip(COLUMNS, widths, strict=True))]
-    lines += ["  ".join(str(r[c]).rjust(w) for c, w in zip(COLUMNS, widths, strict=True)) for r in rows]
+    lines += ["  ".join(str(r[c]).rjust(w) for c, w in zip(COLUMNS, widths, strict=True)) for r in shown]
     lines.append("pair histories per snapshot (R right, W wrong, . not merged; r, w: provisional, held out "
                  "of the global map):")
     for r in rows:
@@ -282,7 +299,7 @@ def main(argv=None) -> list[dict] | None:
               "rules": {k: {"conflict_weight": p.conflict_weight, "recheck_growth": g,
                             "confirm_before_fusing": c}
                         for k, (p, g, c) in RULES.items()},
-              "rows": rows}
+              "rows": rows, "totals": totals(rows)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=1))
     print("written", args.out)

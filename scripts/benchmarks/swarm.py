@@ -37,6 +37,7 @@ sys.path[:0] = [str(ROOT)]
 from coopd.daemon.checkpoint import CheckpointStore  # noqa: E402
 from coopd.daemon.config import MergingConfig  # noqa: E402
 from coopd.daemon.control import ControlError, request  # noqa: E402
+from coopd.daemon.merger import in_global_map  # noqa: E402
 from coopd.daemon.service import save_map_frame  # noqa: E402
 from coopd.geometry import rotation_angle_deg  # noqa: E402
 from coopd.merging import simset  # noqa: E402
@@ -79,7 +80,7 @@ def judge_offsets(offsets: dict, truths: dict[int, np.ndarray], tol_m: float, to
         vid = int(key)
         if vid not in truths:
             continue
-        if not o.get("accepted") or o.get("provisional"):
+        if not in_global_map(o):
             why = "provisional, held out of the global map" if o.get("accepted") else o.get("reason")
             out["refused"][vid] = f"{why} (score {o.get('score')})"
             continue
@@ -106,8 +107,7 @@ def gave_up(earlier: dict, later: dict, ids: list[int]) -> bool:
 
 def accepted_offsets(status: dict) -> set[int]:
     """Vehicle ids this daemon's last merge accepted into its global map (not provisional ones)."""
-    return {int(k) for k, o in status.get("merges", {}).get("offsets", {}).items()
-            if o.get("accepted") and not o.get("provisional")}
+    return {int(k) for k, o in status.get("merges", {}).get("offsets", {}).items() if in_global_map(o)}
 
 
 def holds_global(status: dict, ids: list[int]) -> bool:

@@ -58,7 +58,11 @@ def test_replay_runs_every_rule_set_and_the_new_rules_end_with_both_pairs_right(
     assert rechecks["held_states"] == 0 and new["held_states"] >= 2  # every first fit held
     assert all(len(p["history"]) == 2 for p in rechecks["detail"].values())
     assert all(len(p["history"]) == 3 for p in new["detail"].values())  # one merge more, to confirm
+    assert all(p["recorded"] == 2 for p in new["detail"].values())  # the confirm merge is not a snapshot
     report = json.loads(out.read_text())
+    summed = {t["rules"]: t for t in report["totals"]}
+    assert summed["new"]["right"] == 2 and summed["new"]["wrong_states"] == 0
+    assert summed["new"]["right_states"] + summed["new"]["held_states"] <= 4
     assert report["rules"]["old"] == {"conflict_weight": 3.0, "recheck_growth": None,
                                       "confirm_before_fusing": False}
     assert "flip" in capsys.readouterr().out
