@@ -3,7 +3,8 @@ orientation, packed into uint64 words (256 tests -> 4 words).
 
 The sample is rotated as column vectors, p = R(alpha, beta, gamma) s, so that a map turned by a yaw
 turns the sample with it (Algorithm 4 writes S * R with row vectors; read literally that would turn
-it the other way). With gravity alignment only the yaw gamma steers the sample.
+it the other way). `descriptor_steering` chooses the rotation: the yaw gamma alone, or all three
+angles.
 """
 
 import numba as nb
@@ -58,6 +59,8 @@ def describe(img: np.ndarray, keypoints: np.ndarray, angles: np.ndarray, params:
     """(k, ceil(ds/64)) uint64 descriptors of the keypoints."""
     sample = make_sample(params.descriptor_tests, params.descriptor_window, params.descriptor_seed)
     words = -(-params.descriptor_tests // 64)
-    rots = rotation_matrices(angles, params.gravity_aligned)
+    if params.descriptor_steering not in ("yaw", "euler"):
+        raise ValueError(f"descriptor_steering must be 'yaw' or 'euler', not {params.descriptor_steering!r}")
+    rots = rotation_matrices(angles, params.descriptor_steering == "yaw")
     return _describe(img, np.ascontiguousarray(keypoints, dtype=np.int64), rots, sample,
                      params.descriptor_neighbourhood, words)

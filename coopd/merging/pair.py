@@ -14,6 +14,7 @@ from .level import level_transform
 from .matching import match
 from .mtm import euler_eq33
 from .params import MergeParams, coopd_params
+from .preprocess import despeckle
 from .ransac import filter_correspondences
 from .refine import icp
 from .validation import Agreement, MapSummary, agreement, summarise
@@ -84,6 +85,9 @@ def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = Non
     """Summary for validation, a k-d tree for refinement and features when the variant uses them.
     lazy: only what judging a given transform needs; merge_prepared adds the rest when it searches."""
     tm = timings if timings is not None else {}
+    t0 = time.perf_counter()
+    grid = despeckle(grid, params)
+    tm["despeckle"] = tm.get("despeckle", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
     summary = summarise(grid, params.occupied_threshold, params.validation_max_points)
     tree = cKDTree(summary.occupied_m) if params.refine and len(summary.occupied_m) else None

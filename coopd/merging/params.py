@@ -7,6 +7,10 @@ from dataclasses import dataclass, replace
 class MergeParams:
     """Parameters of the whole pipeline. Distances in metres unless the name says cells."""
 
+    # --- salt-noise filter (coopd; before every stage, see preprocess.despeckle)
+    despeckle_max_occupied: int = 3
+    """An occupied cell with at most this many occupied neighbours (of 26) and more free than unknown
+    ones is dropped to unknown (preprocess.despeckle); -1 switches the filter off."""
     # --- preprocessing (§8.1)
     dilate_radius: int = 1
     dilate_iterations: int = 1
@@ -35,11 +39,22 @@ class MergeParams:
     """'global' (potential field over the whole map) or 'local' (a cube of orientation_radius)."""
     orientation_radius: int = 4
     gauss_seidel_iterations: int = 20
+    """Relaxation sweeps of the potential field (whichever the solver)."""
+    orientation_solver: str = "jacobi"
+    """'jacobi' (order-independent, follows a turn of the map) or 'gauss_seidel' (the thesis, in place)."""
+    orientation_window: int = 4
+    """Radius (cells) of the Gaussian-weighted ball the field's gradient is averaged over; 0 reads one
+    central difference as eq. 20 does."""
     # --- steered BRIEF 3D (§8.5)
     descriptor_tests: int = 256
     descriptor_window: int = 31
     descriptor_seed: int = 42
     descriptor_neighbourhood: int = 0
+    descriptor_steering: str = "yaw"
+    """How the keypoint orientation turns the test sample: 'yaw' (about the vertical only) or 'euler'
+    (the full rotation from alpha, beta, gamma of eq. 20, as Algorithm 4 reads). alpha and beta mix
+    horizontal gradient components, so they do not follow a yaw turn of the map: with 'euler' the true
+    correspondences of a copy turned by 90 or 180 degrees land at random Hamming distances."""
     # --- matching (§8.6)
     match_max_distance: int = 20
     """CC_d: the thesis accepts pairs with Hamming distance <= 20."""
@@ -53,6 +68,9 @@ class MergeParams:
     ransac_tolerance_cells: float = 3.0
     """t, in downsampled cells."""
     ransac_seed: int = 1
+    ransac_min_consensus: int = 3
+    """Correspondences beyond the minimal sample (5, 3 or 2) that must agree with a hypothesis under
+    its rigid fit: the gate that lets RANSAC refuse random correspondences."""
     hypotheses: int = 1
     """Distinct feature-based candidate transforms handed on to validation (the thesis keeps only the
     best); 0 switches the feature stages off."""

@@ -145,3 +145,48 @@ def preprocess(grid: OccupancyGrid, params: MergeParams) -> FeatureImage:
     f = max(1, 2 * params.downsample_radius)
     origin = (grid.offset + (f - 1) / 2.0) * grid.resolution
     return FeatureImage(img, known, origin, f * grid.resolution)
+
+
+@nb.njit(**_JIT)
+def _speckles(cells, threshold, max_occupied):
+    """Mask of occupied cells with at most max_occupied occupied neighbours (of 26) and more free
+    neighbours than unknown ones."""
+    mx, my, mz = cells.shape
+    out = np.zeros(cells.shape, dtype=np.bool_)
+    for x in range(mx):
+        for y in range(my):
+            for z in range(mz):
+                if cells[x, y, z] < threshold:
+                    continue
+                occ = -1
+                free = 0
+                unknown = 26 - (min(mx, x + 2) - max(0, x - 1)) * (min(my, y + 2) - max(0, y - 1)) \
+                    * (min(mz, z + 2) - max(0, z - 1)) + 1
+                for a in range(max(0, x - 1), min(mx, x + 2)):
+                    for b in range(max(0, y - 1), min(my, y + 2)):
+                        for c in range(max(0, z - 1), min(mz, z + 2)):
+                            v = cells[a, b, c]
+                            if v >= threshold:
+                                occ += 1
+                            elif v >= 0:
+                                free += 1
+                            else:
+                                unknown += 1
+                out[x, y, z] = occ <= max_occupied and free > unknown
+    return out
+
+
+def despeckle(grid: OccupancyGrid, params: MergeParams) -> OccupancyGrid:
+    """The grid without salt noise: an occupied cell with at most despeckle_max_occupied occupied
+    neighbours (of 26) and more free neighbours than unknown ones becomes unknown. A surface the sensor
+    saw has its own occupied neighbours, or unknown space behind it as much as free space in front;
+    a flipped cell floating in free space has neither. Unknown, not free: the filter removes evidence,
+    it never invents free space. The grid itself when nothing is removed."""
+    if params.despeckle_max_occupied < 0:
+        return grid
+    drop = _speckles(grid.cells, params.occupied_threshold, params.despeckle_max_occupied)
+    if not drop.any():
+        return grid
+    cells = grid.cells.copy()
+    cells[drop] = -1
+    return OccupancyGrid(cells, grid.resolution, grid.offset)

@@ -83,6 +83,23 @@ def _consistent(pb, pa, idx, tol):
 
 
 @nb.njit(**_JIT)
+def _sample(n, k):
+    """k distinct indices of n by rejection: O(k^2), where np.random.choice without replacement
+    permutes all n (most of RANSAC's time on thousands of correspondences)."""
+    idx = np.empty(k, dtype=np.int64)
+    i = 0
+    while i < k:
+        v = np.random.randint(0, n)
+        for j in range(i):
+            if idx[j] == v:
+                break
+        else:
+            idx[i] = v
+            i += 1
+    return idx
+
+
+@nb.njit(**_JIT)
 def ransac(pb, pa, model, iterations, tol, seed):
     """All sampled hypotheses (iterations, 4, 4) with their inlier counts (-1 for skipped samples)."""
     np.random.seed(seed)
@@ -93,7 +110,7 @@ def ransac(pb, pa, model, iterations, tol, seed):
     if n < k:
         return hyps, counts
     for it in range(iterations):
-        idx = np.random.choice(n, k, replace=False)
+        idx = _sample(n, k)
         if model != 0 and not _consistent(pb, pa, idx, tol):
             continue
         sb = np.empty((k, 3))
@@ -121,12 +138,26 @@ def _distinct(t: np.ndarray, kept: list, min_angle_deg: float, min_shift_m: floa
     return True
 
 
+def _polish(pb: np.ndarray, pa: np.ndarray, inl: np.ndarray, tol_m: float, yaw_only: bool, rounds: int = 5):
+    """MTM (Kabsch) on the inliers, the inliers re-selected by that rigid fit, until they settle."""
+    t = estimate(pb[inl], pa[inl], yaw_only)
+    for _ in range(rounds):
+        again = residuals(t, pb, pa, False) <= tol_m
+        if again.sum() < 3 or np.array_equal(again, inl):
+            break
+        inl = again
+        t = estimate(pb[inl], pa[inl], yaw_only)
+    return t, residuals(t, pb, pa, False) <= tol_m
+
+
 def filter_correspondences(pb: np.ndarray, pa: np.ndarray, tol_m: float, params: MergeParams,
                            min_angle_deg: float = 10.0, min_shift_m: float = 1.0) -> list[Hypothesis]:
     """Up to params.hypotheses distinct rigid hypotheses b -> a, best supported first.
 
-    Each winning sample's inliers are re-estimated by Kabsch (the MTM of §8.8); for the homography
-    model, as in the thesis, the homography only selects the inliers.
+    The winning samples' inliers are re-estimated by Kabsch (the MTM of §8.8) and re-selected by that
+    rigid fit. A hypothesis needs ransac_min_consensus correspondences beyond its minimal sample, counted
+    under the rigid fit: a 5-point homography fits any 5 correspondences exactly (15 DoF), so the
+    homography's own inlier count can never refuse anything.
     """
     model = MODELS[params.ransac_model]
     pb = np.ascontiguousarray(pb, dtype=np.float64)
@@ -134,12 +165,12 @@ def filter_correspondences(pb: np.ndarray, pa: np.ndarray, tol_m: float, params:
     hyps, counts = ransac(pb, pa, model, params.ransac_iterations, float(tol_m), params.ransac_seed)
     kept: list[Hypothesis] = []
     yaw_only = params.gravity_aligned or model == 2
+    need = max(3, SAMPLE[model] + params.ransac_min_consensus)
     for i in np.argsort(-counts, kind="stable"):
-        if counts[i] < max(3, SAMPLE[model]) or len(kept) >= params.hypotheses:
+        if counts[i] < need or len(kept) >= params.hypotheses:
             break
         inl = residuals(hyps[i], pb, pa, model == 0) <= tol_m
-        t = estimate(pb[inl], pa[inl], yaw_only)
-        inl = residuals(t, pb, pa, False) <= tol_m if model != 0 else inl
-        if inl.sum() >= 3 and _distinct(t, kept, min_angle_deg, min_shift_m):
+        t, inl = _polish(pb, pa, inl, tol_m, yaw_only)
+        if inl.sum() >= need and _distinct(t, kept, min_angle_deg, min_shift_m):
             kept.append(Hypothesis(t, inl))
     return kept

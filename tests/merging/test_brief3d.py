@@ -1,6 +1,12 @@
 import numpy as np
+import pytest
+from scipy.spatial import cKDTree
 
+from coopd.geometry import apply, invert, rigid, rotation_z
+from coopd.grid import transform_grid
+from coopd.merging.benchset import make_world, partial_map
 from coopd.merging.brief3d import describe, make_sample
+from coopd.merging.features import extract
 from coopd.merging.matching import hamming_block
 from coopd.merging.orientation import orientations
 from coopd.merging.params import MergeParams
@@ -73,3 +79,32 @@ def test_local_and_global_orientation_agree_near_a_wall():
     loc = orientations(img, kp, MergeParams(orientation_mode="local"))
     # the field falls away from the wall at x < 5: yaw points along +x
     assert abs(g[0, 2]) < 0.05 and abs(loc[0, 2]) < 0.05
+
+
+@pytest.mark.parametrize("deg", [90, 180])
+def test_yaw_steering_matches_a_turned_copy_within_cc_d_and_euler_steering_does_not(deg):
+    """A lossless copy of a map turned by deg: the true correspondences' Hamming distances are inside
+    CC_d = 20 when the sample turns by yaw only, and random (about half of 256) when it turns by the
+    full alpha, beta, gamma of eq. 20 (alpha and beta mix horizontal gradient components)."""
+    world = make_world(3, size_m=(12.0, 12.0, 3.0))
+    grid = partial_map(world, rigid(np.eye(3), [6.0, 6.0, 1.5]), ((1, 1), (11, 11)),
+                       np.random.default_rng(1), viewpoints=10, rays=4000).grid
+    t = rigid(rotation_z(np.radians(deg)), [2.0, -1.0, 0.0])
+    turned = transform_grid(grid, t)
+    medians = {}
+    for steering in ("yaw", "euler"):
+        params = MergeParams(fast_both_polarities=True, descriptor_steering=steering)
+        fa, fb = extract(grid, params), extract(turned, params)
+        dist, nearest = cKDTree(apply(invert(t), fb.points_m)).query(fa.points_m)
+        same = dist < fa.cell_m  # block parity may move a keypoint by half a block per axis
+        assert same.sum() >= 50
+        d = hamming_block(fa.descriptors[same], fb.descriptors[nearest[same]])
+        medians[steering] = float(np.median(np.diag(d)))
+    assert medians["yaw"] <= MergeParams().match_max_distance, medians
+    assert medians["euler"] > 60, medians
+
+
+def test_unknown_steering_is_refused():
+    with pytest.raises(ValueError, match="descriptor_steering"):
+        describe(np.zeros((4, 4, 4), np.float32), np.array([[1, 1, 1]]), np.zeros((1, 3)),
+                 MergeParams(descriptor_steering="roll"))

@@ -1,8 +1,13 @@
+from pathlib import Path
+
 import numpy as np
 
 from coopd.grid import OccupancyGrid
+from coopd.io.cmap import load_cmap
 from coopd.merging.params import MergeParams
-from coopd.merging.preprocess import dilate, downsample, erode, gaussian, intensity, preprocess
+from coopd.merging.preprocess import despeckle, dilate, downsample, erode, gaussian, intensity, preprocess
+
+DATA = Path(__file__).parent / "data"
 
 
 def test_intensity_maps_occupancy_to_255_and_unknown_to_zero():
@@ -43,3 +48,43 @@ def test_preprocess_places_downsampled_cells_in_metres():
     # block [0..1] of keys -5,-4 has its centre at -4.5 keys = -0.45 m
     assert np.allclose(fi.to_metres([0, 0, 0]), [-0.45, -0.45, 0.05])
     assert fi.cell_m == 0.2 and fi.image.shape == (5, 5, 5)
+
+
+def _flipped(grid, fraction, seed=0):
+    """A copy with `fraction` of the known cells flipped (occupied <-> free): salt-and-pepper noise."""
+    rng = np.random.default_rng(seed)
+    cells = grid.cells.copy()
+    flat = cells.reshape(-1)
+    known = np.flatnonzero(flat >= 0)
+    pick = rng.choice(known, int(fraction * len(known)), replace=False)
+    flat[pick] = np.where(flat[pick] >= 50, 10, 90)
+    return OccupancyGrid(cells, grid.resolution, grid.offset)
+
+
+def test_despeckle_removes_salt_noise_and_keeps_surfaces(near_pair):
+    clean = near_pair.a
+    noisy = _flipped(clean, 0.10)
+    out = despeckle(noisy, MergeParams())
+    was_surface = clean.cells >= 50
+    near_surface = dilate(was_surface.astype(np.float32), 1) > 0
+    speckle = (noisy.cells >= 50) & ~near_surface  # one touching a wall only thickens it
+    assert speckle.sum() > 0.5 * was_surface.sum()
+    kept_speckle = (out.cells >= 50) & speckle
+    # most speckles go; the rest float where the ray-cast map is mostly unknown (sparse far rays)
+    assert kept_speckle.sum() < 0.4 * speckle.sum()
+    noisy_surface = was_surface & (noisy.cells >= 50)
+    assert ((out.cells >= 50) & noisy_surface).sum() > 0.95 * noisy_surface.sum()
+    assert (out.cells[speckle & ~kept_speckle] == -1).all()  # removed evidence becomes unknown, never free
+
+
+def test_despeckle_leaves_real_flight_maps_almost_whole():
+    for name in ("early_1", "later_2"):
+        grid, _ = load_cmap(DATA / "small_house_flip" / f"{name}.cmap")
+        out = despeckle(grid, MergeParams())
+        assert (out.cells >= 50).sum() > 0.99 * (grid.cells >= 50).sum()
+
+
+def test_despeckle_off_or_clean_returns_the_grid_itself(near_pair):
+    assert despeckle(near_pair.a, MergeParams(despeckle_max_occupied=-1)) is near_pair.a
+    lone = OccupancyGrid(np.full((5, 5, 5), 10, dtype=np.int8), 0.1)
+    assert despeckle(lone, MergeParams()) is lone

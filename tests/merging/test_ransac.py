@@ -3,7 +3,7 @@ import pytest
 
 from coopd.geometry import euler_to_matrix, rigid, rotation_angle_deg, rotation_z
 from coopd.merging.params import MergeParams
-from coopd.merging.ransac import filter_correspondences, homography, residuals
+from coopd.merging.ransac import MODELS, filter_correspondences, homography, ransac, residuals
 
 
 def _data(t, n=60, outliers=0.5, seed=0):
@@ -45,3 +45,31 @@ def test_ransac_hypotheses_are_distinct():
             a, b = hyps[i].transform, hyps[j].transform
             assert (rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) >= 10
                     or np.linalg.norm(a[:3, 3] - b[:3, 3]) >= 1.0)
+
+
+@pytest.mark.parametrize("model", ["homography", "rigid", "yaw"])
+def test_the_gate_refuses_random_correspondences(model):
+    """No hypothesis from correspondences that share no transform: every 5-point homography fits its
+    own sample, so only the consensus beyond the sample under the rigid fit can refuse them."""
+    rng = np.random.default_rng(11)
+    pb, pa = rng.uniform(-10, 10, (300, 3)), rng.uniform(-10, 10, (300, 3))
+    params = MergeParams(ransac_model=model, ransac_iterations=2000, hypotheses=3)
+    assert filter_correspondences(pb, pa, 0.3, params) == []
+
+
+def test_the_homographys_own_inlier_count_cannot_refuse():
+    """Why the gate is needed: on pure noise every 5-point homography sample counts >= 5 inliers (it fits
+    its own sample exactly), so the thesis' '>= 5 inliers' test passes for every sample."""
+    rng = np.random.default_rng(11)
+    pb, pa = rng.uniform(-10, 10, (300, 3)), rng.uniform(-10, 10, (300, 3))
+    _, counts = ransac(pb, pa, MODELS["homography"], 500, 0.3, 1)
+    assert counts.min() >= 5
+
+
+def test_the_gate_keeps_a_true_transform_among_95_percent_outliers():
+    t = rigid(rotation_z(np.radians(200)), [3.0, 1.0, 0.2])
+    pb, pa, good = _data(t, n=400, outliers=0.95, seed=5)
+    params = MergeParams(ransac_model="yaw", ransac_iterations=3000, hypotheses=1, gravity_aligned=True)
+    best = filter_correspondences(pb, pa, 0.15, params)[0]
+    assert rotation_angle_deg(best.transform[:3, :3].T @ t[:3, :3]) < 1.0
+    assert best.inlier_count >= 0.9 * good.sum()
