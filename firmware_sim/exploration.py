@@ -162,14 +162,18 @@ def flipped(grid: OccupancyGrid, fraction: float, rng) -> OccupancyGrid:
 
 def turned_copies(grid: OccupancyGrid, angles_deg=(37.0, 90.0, 180.0), flips=(0.0, 0.02, 0.05, 0.10),
                   seed: int = 0, shift_m=(2.0, 4.0), world: str = "", name: str = "map") -> list[ThesisPair]:
-    """Copies of a map turned by each yaw angle and shifted shift_m (range) in a random horizontal
-    direction (transform_grid resamples), then with each fraction of known cells flipped. Each pair
+    """Copies of a map turned by each yaw angle and shifted shift_m (range, rounded to whole cells) in
+    a random horizontal direction (transform_grid resamples), then with each fraction of known cells
+    flipped. Each pair
     is (a = the map, b = the copy, a_from_b exact); the flip levels of one angle share one turn."""
     rng = np.random.default_rng(seed)
     out = []
     for angle in angles_deg:
         heading = rng.uniform(0.0, 2 * np.pi)
         shift = rng.uniform(*shift_m) * np.array([np.cos(heading), np.sin(heading), 0.0])
+        # whole cells: a turn by a multiple of 90 deg then carries cell centres onto cell centres, so
+        # such a copy is lossless and its truth exact (a half-cell shift would bias it by 0.05 m)
+        shift = np.round(shift / grid.resolution) * grid.resolution
         copy_from_map = rigid(rotation_z(math.radians(angle)), shift)
         turned = transform_grid(grid, copy_from_map)
         for fraction in flips:

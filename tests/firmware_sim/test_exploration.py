@@ -119,7 +119,11 @@ def test_turned_copies_truth_holds_and_flips_have_the_asked_fraction(exploration
     for c in copies:
         assert c.a is a.grid and c.kind == "turned"
         assert abs(rotation_angle_deg(c.a_from_b[:3, :3]) - c.angle_deg) < 1e-6
-        assert 2.0 <= np.linalg.norm(c.a_from_b[:3, 3]) <= 4.0
+        assert 1.9 <= np.linalg.norm(c.a_from_b[:3, 3]) <= 4.1
+        shift = invert(c.a_from_b)[:3, 3]
+        assert np.allclose(shift / 0.1, np.round(shift / 0.1))  # the copy moved by whole cells
+    turned, counts = copies[3].b.counts(), a.grid.counts()  # 180 deg carries every cell onto one: lossless
+    assert (turned.free, turned.occupied) == (counts.free, counts.occupied)
     for lossless in (copies[0], copies[3]):
         assert landing_agreement(a.grid, lossless.b, lossless.a_from_b) >= 0.97
         off = rigid(translation=[0.4, 0.4, 0.0]) @ lossless.a_from_b
