@@ -231,7 +231,7 @@ class Variant:
         if png_dir is not None:
             outcome = "success" if row["success"] else "wrong" if row["wrong"] else "refused"
             title = f"{self.label} {pair.name}: {outcome}"
-            row["png"] = merge_png(pair, r.transform, png_dir / self.label, title)
+            row["png"] = merge_png(pair, r.transform, png_dir / safe_name(self.label), title)
         self.rows.append(row)
         return row
 
@@ -264,6 +264,11 @@ class Variant:
         }
 
 
+def safe_name(text: str) -> str:
+    """A file name made of text: runs of anything but letters, digits, '_', '.', '-' become '_'."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_")
+
+
 def merge_png(pair, estimate: np.ndarray, directory: Path, title: str) -> str | None:
     """Both maps after the merge (B carried by the estimate), one colour each; None if the estimate
     is not a usable rigid transform or throws B far away."""
@@ -275,7 +280,7 @@ def merge_png(pair, estimate: np.ndarray, directory: Path, title: str) -> str | 
     if not np.all(np.isfinite(span)) or span.max() > PNG_MAX_CELLS:
         return None
     directory.mkdir(parents=True, exist_ok=True)
-    path = directory / (re.sub(r"[^A-Za-z0-9_.-]+", "_", pair.name.replace("<-", "-from-")) + ".png")
+    path = directory / (safe_name(pair.name.replace("<-", "-from-")) + ".png")
     try:
         export_png_merge(pair.a, pair.b, estimate, path, title)
     except ValueError:  # not a rigid transform
