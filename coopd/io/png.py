@@ -5,7 +5,7 @@ import io
 import numpy as np
 from PIL import Image, ImageDraw, PngImagePlugin
 
-from coopd.grid import OccupancyGrid
+from coopd.grid import OccupancyGrid, transform_grid
 from coopd.grid.cells import OCCUPIED_THRESHOLD
 
 from .atomic import write_atomic
@@ -16,6 +16,10 @@ LABELS = ("unknown", "free", "occupied", "inaccessible")
 LEGEND_HEIGHT = 24
 LEGEND_MIN_WIDTH = 360
 TARGET_SIZE = 512
+NEITHER, SEEN_FREE, ONLY_A, ONLY_B, BOTH = 0, 1, 2, 3, 4
+MERGE_COLOURS = np.array([(160, 160, 160), (255, 255, 255), (0, 90, 220), (230, 80, 0), (0, 0, 0)],
+                         dtype=np.uint8)
+MERGE_LABELS = ("unknown", "free", "map A", "map B", "both")
 """Small maps are scaled up by a whole factor until their longer side is about this many pixels."""
 
 
@@ -73,17 +77,17 @@ def scale_for(shape_xy) -> int:
     return max(1, min(16, TARGET_SIZE // max(shape_xy)))
 
 
-def render(classes: np.ndarray, title: str) -> Image.Image:
+def render(classes: np.ndarray, title: str, colours: np.ndarray = COLOURS, labels=LABELS) -> Image.Image:
     """An RGB image of (m_x, m_y) classes, x to the right, y (north) up, legend underneath."""
     s = scale_for(classes.shape)
-    rgb = COLOURS[classes.T[::-1]]
+    rgb = colours[classes.T[::-1]]
     rgb = np.repeat(np.repeat(rgb, s, axis=0), s, axis=1)
     h, w = rgb.shape[:2]
     canvas = Image.new("RGB", (max(w, LEGEND_MIN_WIDTH), h + LEGEND_HEIGHT), (255, 255, 255))
     canvas.paste(Image.fromarray(rgb, "RGB"), (0, 0))
     draw = ImageDraw.Draw(canvas)
     x = 4
-    for colour, label in zip(COLOURS, LABELS, strict=True):
+    for colour, label in zip(colours, labels, strict=True):
         draw.rectangle([x, h + 6, x + 12, h + 18], fill=tuple(int(c) for c in colour), outline=(0, 0, 0))
         draw.text((x + 16, h + 6), label, fill=(0, 0, 0))
         x += 20 + int(draw.textlength(label)) + 10
@@ -108,3 +112,33 @@ def export_png_slice(grid: OccupancyGrid, path, z_m: float, threshold: int = OCC
     """The horizontal slice at height z_m as a PNG with a legend."""
     classes = slice_classes(grid, z_m, threshold)
     _save(render(classes, f"coopd map slice z = {z_m} m, {grid.resolution} m/cell"), path)
+
+
+def merge_classes(a: OccupancyGrid, b: OccupancyGrid, threshold: int = OCCUPIED_THRESHOLD) -> np.ndarray:
+    """(m_x, m_y) top-view classes of two maps in one frame over both maps' extent: structure of A
+    only, of B only, of both (the merge fits where walls overlap), else seen free, else unknown."""
+    lo = np.minimum(a.offset[:2], b.offset[:2])
+    hi = np.maximum(a.offset[:2] + a.shape[:2], b.offset[:2] + b.shape[:2])
+    occupied = []
+    seen = np.zeros(tuple(int(v) for v in hi - lo), dtype=bool)
+    for g in (a, b):
+        top = top_classes(g, threshold)
+        start = g.offset[:2] - lo
+        at = tuple(slice(int(s), int(s + n)) for s, n in zip(start, g.shape[:2], strict=True))
+        occ = np.zeros_like(seen)
+        occ[at] = top == OCCUPIED
+        seen[at] |= top != UNKNOWN
+        occupied.append(occ)
+    out = np.where(seen, SEEN_FREE, NEITHER).astype(np.uint8)
+    out[occupied[0] & ~occupied[1]] = ONLY_A
+    out[occupied[1] & ~occupied[0]] = ONLY_B
+    out[occupied[0] & occupied[1]] = BOTH
+    return out
+
+
+def export_png_merge(a: OccupancyGrid, b: OccupancyGrid, a_from_b, path, title: str = "",
+                     threshold: int = OCCUPIED_THRESHOLD) -> None:
+    """Top view of a merge: map A and map B carried into A's frame by a_from_b, one colour each."""
+    classes = merge_classes(a, transform_grid(b, a_from_b), threshold)
+    title = title or f"coopd merge top view, {a.resolution} m/cell"
+    _save(render(classes, title, MERGE_COLOURS, MERGE_LABELS), path)
