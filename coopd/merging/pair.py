@@ -16,7 +16,7 @@ from .mtm import euler_eq33
 from .params import MergeParams, coopd_params
 from .preprocess import despeckle
 from .ransac import filter_correspondences
-from .refine import icp
+from .refine import icp, subcell_shift
 from .validation import Agreement, MapSummary, agreement, summarise
 
 AMBIGUOUS = "ambiguous"
@@ -136,6 +136,17 @@ def _refined(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) 
     return Candidate(t, inliers, c.source)
 
 
+def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) -> Candidate:
+    """The chosen hypothesis moved onto a's surfaces to a quarter cell (refine.subcell_shift); done once
+    for the winner, since a shift within a cell does not change how validation ranks hypotheses."""
+    if not (params.refine and params.refine_subcell and len(b.summary.occupied_m)):
+        return c
+    src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
+    t = subcell_shift(a.grid.cells >= params.occupied_threshold, a.grid.offset, a.grid.resolution, src,
+                      c.transform)
+    return Candidate(t, c.inliers, c.source)
+
+
 def _share(ag: Agreement, a: PreparedMap, b: PreparedMap) -> float:
     """Agreeing share of both maps' vertical-structure samples."""
     return ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
@@ -157,7 +168,8 @@ def _rejection(ag: Agreement, inliers: int, overlap: float, params: MergeParams)
 def judge(a: PreparedMap, b: PreparedMap, transform: np.ndarray, params: MergeParams) -> MergeResult:
     """One given hypothesis refined and validated alone (no runner-up test): what validation makes of
     any transform, e.g. a deliberately wrong one."""
-    c = _refined(a, b, Candidate(np.asarray(transform, dtype=np.float64), 0, "given"), params)
+    c = _subcell(a, b, _refined(a, b, Candidate(np.asarray(transform, dtype=np.float64), 0, "given"), params),
+                 params)
     ag = agreement(a.summary, b.summary, c.transform)
     overlap = _share(ag, a, b)
     reason = _rejection(ag, c.inliers, overlap, params) or "accepted"
@@ -204,6 +216,10 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
                            timings=tm)
     scored.sort(key=lambda x: -x[0])
     _, best_ag, best = scored[0]
+    t0 = time.perf_counter()
+    best = _subcell(a, b, best, params)
+    best_ag = agreement(a.summary, b.summary, best.transform)
+    tm["subcell"] = time.perf_counter() - t0
     runner = next((s for s in scored[1:] if distinct(s[2].transform, best.transform)), None)
     runner_score = runner[1].score if runner else 0.0
     overlap = _share(best_ag, a, b)

@@ -103,6 +103,9 @@ class MergeParams:
     """ICP steps: the first half shrink the correspondence radius from 6 to 1.5 cells, the rest hold it
     (14 left some transforms 0.2 m short of convergence)."""
     refine_max_points: int = 4000
+    refine_subcell: bool = True
+    """After ICP, shift by the quarter-cell translation that lays b's points highest on a's smoothed
+    occupied cells (refine.subcell_shift): ICP between cell centres can stop a whole cell off."""
     refine_candidates: int = 6
     """Candidates refined and validated; beyond this many (the feature variants add hypotheses) the
     best by unrefined support go on. Every search hypothesis is refined (6 = search_candidates):
