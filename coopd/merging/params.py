@@ -11,6 +11,9 @@ class MergeParams:
     despeckle_max_occupied: int = 3
     """An occupied cell with at most this many occupied neighbours (of 26) and more free than unknown
     ones is dropped to unknown (preprocess.despeckle); -1 switches the filter off."""
+    despeckle_min_share: float = 0.05
+    """...only when such cells are at least this share of the occupied cells (salt noise, not a few
+    thin structures of a clean map)."""
     # --- preprocessing (§8.1)
     dilate_radius: int = 1
     dilate_iterations: int = 1

@@ -178,14 +178,18 @@ def _speckles(cells, threshold, max_occupied):
 
 def despeckle(grid: OccupancyGrid, params: MergeParams) -> OccupancyGrid:
     """The grid without salt noise: an occupied cell with at most despeckle_max_occupied occupied
-    neighbours (of 26) and more free neighbours than unknown ones becomes unknown. A surface the sensor
-    saw has its own occupied neighbours, or unknown space behind it as much as free space in front;
-    a flipped cell floating in free space has neither. Unknown, not free: the filter removes evidence,
-    it never invents free space. The grid itself when nothing is removed."""
+    neighbours (of 26) and more free neighbours than unknown ones becomes unknown, when such cells are
+    at least despeckle_min_share of the occupied cells. A surface the sensor saw has its own occupied
+    neighbours, or unknown space behind it as much as free space in front; a flipped cell floating in
+    free space has neither. Clean maps have 0-3.3 % of such cells (mostly real, e.g. thin poles) and
+    stay as they are; 2 % flipped cells make them 6-37 %. Unknown, not free: the filter removes
+    evidence, it never invents free space. The grid itself when nothing is removed."""
     if params.despeckle_max_occupied < 0:
         return grid
     drop = _speckles(grid.cells, params.occupied_threshold, params.despeckle_max_occupied)
-    if not drop.any():
+    count = int(drop.sum())
+    occupied = int((grid.cells >= params.occupied_threshold).sum())
+    if count == 0 or count < params.despeckle_min_share * occupied:
         return grid
     cells = grid.cells.copy()
     cells[drop] = -1

@@ -86,5 +86,8 @@ def test_despeckle_leaves_real_flight_maps_almost_whole():
 
 def test_despeckle_off_or_clean_returns_the_grid_itself(near_pair):
     assert despeckle(near_pair.a, MergeParams(despeckle_max_occupied=-1)) is near_pair.a
+    assert despeckle(near_pair.a, MergeParams()) is near_pair.a  # clean: its few lone cells are real
+    noisy = _flipped(near_pair.a, 0.02)
+    assert despeckle(noisy, MergeParams()) is not noisy
     lone = OccupancyGrid(np.full((5, 5, 5), 10, dtype=np.int8), 0.1)
     assert despeckle(lone, MergeParams()) is lone
