@@ -245,7 +245,7 @@ class Daemon:
             max_payload_bytes=self.config.camera.max_payload_bytes,
             stall_timeout_s=self.config.camera.stall_timeout_s,
         )
-        return SocketDepthSource(cfg, self.slot)
+        return SocketDepthSource(cfg, self.slot, fc=self.link)  # FC reboots reset its time reference
 
     def _local_to_fc(self, local_s: float) -> float | None:
         est = self.link.clock.estimate()

@@ -30,10 +30,10 @@ def sock_path(tmp_path):
 def make_source(sock_path):
     made = []
 
-    def make(**kw):
+    def make(fc=None, **kw):
         kw.setdefault("stall_timeout_s", 0.4)
         kw.setdefault("backoff_s", (0.02, 0.2))
-        src = SocketDepthSource(SocketSourceConfig(sock_path, **kw))
+        src = SocketDepthSource(SocketSourceConfig(sock_path, **kw), fc=fc)
         made.append(src)
         src.start()
         return src
@@ -227,5 +227,82 @@ def test_a_byte_trickling_driver_is_abandoned(sock_path, make_source):
         src = make_source(stall_timeout_s=0.3, frame_timeout_s=0.5)
         f = src.slot.take(timeout=3.0)
         assert f is not None and f.seq == 1 and src.counters["disconnect_slow_frame"] == 1
+    finally:
+        drv.close()
+
+
+class StubFcClock:
+    """The vehicle link as the camera client sees it: the FC's clock now and its reboot count."""
+
+    def __init__(self, now_s=None, epoch=0):
+        self.now_s, self.epoch = now_s, epoch
+
+    def fc_time_latest(self):
+        return self.now_s
+
+    def fc_epoch(self):
+        return self.epoch
+
+
+def test_a_frame_from_the_future_is_dropped_without_moving_the_reference(sock_path, make_source):
+    """One frame stamped far after the FC's clock must not make every later frame 'old'."""
+
+    def script(conn, index, stopping):
+        for seq, t in ((0, 1000), (1, 2000), (2, 10**12), (3, 3000), (4, 4000)):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=t)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(fc=StubFcClock(now_s=0.005))
+        assert wait_until(lambda: src.counters["frames"] == 4, 3.0), src.status()
+        assert src.counters["dropped_future_timestamp"] == 1
+        assert src.counters["dropped_timestamp_not_increasing"] == 0
+        f = src.slot.take()
+        assert f.seq == 4 and f.t_fc == pytest.approx(0.004)
+    finally:
+        drv.close()
+
+
+def test_an_fc_reboot_resets_the_time_reference_at_once(sock_path, make_source):
+    """After the FC rebooted, the driver's first frame in the new (small) FC time is mapped."""
+    fc = StubFcClock(now_s=20.0)
+
+    def script(conn, index, stopping):
+        for seq in range(3):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=(18 + seq) * 10**6)))
+        stopping.wait(0.3)
+        fc.now_s, fc.epoch = 0.6, 1  # the FC rebooted; the link saw it
+        conn.sendall(frame_bytes(header(seq=3, t_us=500_000)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(fc=fc)
+        assert wait_until(lambda: src.counters["frames"] == 4, 3.0), src.status()
+        assert src.counters["time_reference_resets_fc_reboot"] == 1
+        assert src.slot.take().t_fc == pytest.approx(0.5)
+    finally:
+        drv.close()
+
+
+def test_stamps_that_stay_behind_the_reference_become_the_new_reference(sock_path, make_source):
+    """Without an FC clock to judge by, one bad stamp costs at most relatch_after_s of frames."""
+
+    def script(conn, index, stopping):
+        conn.sendall(frame_bytes(header(seq=0, t_us=10**12)))  # latches the reference far ahead
+        for k in range(1, 40):  # then a good stream at 20 Hz, for at most 2 s
+            conn.sendall(frame_bytes(header(seq=k, t_us=10**6 + k * 50_000)))
+            if stopping.wait(0.05):
+                return
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(relatch_after_s=0.3)
+        assert wait_until(lambda: src.counters["frames"] >= 10, 3.0), src.status()
+        assert src.counters["time_reference_resets_stamps_went_back"] == 1
+        assert 3 <= src.counters["dropped_timestamp_not_increasing"] <= 10
+        assert src.slot.take().t_fc < 3.0
     finally:
         drv.close()
