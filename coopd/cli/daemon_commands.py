@@ -209,7 +209,9 @@ def format_status(s: dict) -> str:
                 "control",
                 f"{c.get('served', 0)} served, {c.get('bad_requests', 0)} bad, "
                 f"{c.get('oversize', 0)} oversize, {c.get('timeouts', 0)} timed out, "
-                f"{c.get('evicted', 0)} evicted",
+                f"{c.get('evicted', 0)} evicted; replies: {c.get('reply_timeouts', 0)} cut at their "
+                f"deadline, {c.get('evicted_replies', 0)} cut for room, {c.get('refused_busy', 0)} busy, "
+                f"{c.get('reply_buffer_bytes', 0)} of {c.get('reply_buffer_limit', 0)} B queued",
             )
         )
     cp = s.get("checkpoint") or {}

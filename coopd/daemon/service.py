@@ -30,7 +30,7 @@ from coopd.camera import LatestSlot, RealSenseSource, SocketDepthSource, SocketS
 from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
-from coopd.daemon.control import BlobReply, CommandFailed, ControlServer
+from coopd.daemon.control import DEFAULT_MAX_REPLY_BUFFER, BlobReply, CommandFailed, ControlServer
 from coopd.daemon.merger import Merger, find_merge_all
 from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.threads import ThreadPriorities
@@ -108,6 +108,12 @@ def local_grid_cap(config: Config, budget: MemoryBudget) -> int:
     """Cells the local grid may grow to: a quarter of the grid budget (the local map, its snapshot
     for sharing/checkpoints, the global map and merge scratch must all fit), within the config's cap."""
     return min(config.mapping.growth.max_cells, max(budget.grid_budget // 4, 1))
+
+
+def control_reply_buffer(budget: MemoryBudget) -> int:
+    """Bytes of control replies that may wait for slow readers: 1/8 of the room for grids, within
+    1..64 MiB (one reply alone may exceed it: a map the daemon holds anyway)."""
+    return min(DEFAULT_MAX_REPLY_BUFFER, max(1 << 20, budget.grid_budget // 8))
 
 
 def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig:
@@ -216,6 +222,7 @@ class Daemon:
             },
             max_clients=config.daemon.control_max_clients,
             timeout_s=config.daemon.control_timeout_s,
+            max_reply_buffer_bytes=control_reply_buffer(self.budget),
         )
         self.control.on_thread_start = lambda: self.priorities.apply("control")
         self.watchdog = WatchdogPinger(self.notifier, self.healthy)
