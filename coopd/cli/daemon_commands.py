@@ -171,6 +171,13 @@ def format_status(s: dict) -> str:
                 + ("" if mg.get("distributed", True) else ", not distributed"),
             )
         )
+    if mg.get("start_error"):
+        rows.append(("merging", f"{mg.get('state', '-')}" if not mg.get("available", True)
+                     else f"{mg.get('state', '-')}; {mg['start_error']}"))
+    stalled = (s.get("watchdog") or {}).get("stalled_threads") or {}
+    if stalled:
+        rows.append(("health", "not healthy (watchdog not fed): "
+                     + "; ".join(f"{k} {v}" for k, v in sorted(stalled.items()))))
     if mg.get("provisional"):
         rows.append(("provisional", "merges found, held out of the global map until confirmed: "
                      + ", ".join(f"vehicle {v}" for v in mg["provisional"])))

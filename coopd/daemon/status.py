@@ -86,6 +86,8 @@ def build(daemon) -> dict:
             "pings": daemon.watchdog.pings,
             "withheld": daemon.watchdog.withheld,
             "healthy": daemon.healthy(),
+            "watched_threads": daemon.progress.watched(),
+            "stalled_threads": daemon.stalled_threads(),
             "notify_sent": daemon.notifier.sent,
             "notify_dropped": daemon.notifier.dropped,
         },

@@ -6,8 +6,11 @@ import json
 import os
 import shutil
 import socket
+import sys
 import threading
 import time
+import types
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -163,6 +166,100 @@ def test_sd_notify_ready_status_and_watchdog_only_while_mapping_lives(wd):
         d.shutdown()
         listener.close()
     assert listener.with_field("STOPPING=1")
+
+
+def _pings_after(listener, t: float) -> list[float]:
+    return [tp for tp, _ in listener.with_field("WATCHDOG=1") if tp > t]
+
+
+@pytest.mark.parametrize("worker", ["merging", "sharing"])
+def test_a_hung_merging_or_sharing_thread_stops_the_watchdog_and_is_logged(wd, worker, caplog):
+    """A merge that computes for 5 s keeps the pings going; a merge or a publish blocked on a lock
+    (no CPU) stops them once it used no CPU for busy_quiet_s, with one ERROR line naming the thread
+    and the thread shown in status; released, the pings come back."""
+    listener = NotifyListener(wd)
+    notifier = Notifier("socket", {"NOTIFY_SOCKET": listener.path, "WATCHDOG_USEC": "400000"})
+    _, share_port = port_block(3)
+    cfg = _config(wd)
+    if worker == "sharing":
+        sharing = replace(cfg.sharing, enabled=True, port=share_port, listen_host="127.0.0.1")
+        cfg = replace(cfg, sharing=sharing)
+    d = Daemon(cfg, notifier=notifier)
+    d.progress.busy_quiet_s = 1.0
+    release = threading.Event()
+    real_merge = d.merger._merge
+
+    def merge(mode=["spin"]):  # noqa: B006 (the test switches the mode)
+        if mode[0] == "spin":
+            t_end = time.monotonic() + 5.0  # a long merge: bounded arithmetic
+            while time.monotonic() < t_end:
+                sum(range(1000))
+            mode[0] = "block"
+            return real_merge()
+        release.wait(30)
+        return real_merge()
+
+    d.merger._merge = merge
+    caplog.set_level("INFO", logger="coopd.daemon")
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        assert wait_until(lambda: listener.with_field("READY=1"), 5)
+        if worker == "merging":
+            d.merger.request("test", urgent=True)
+            time.sleep(0.5)
+            assert d.merger.busy_since is not None
+            t_spin = time.monotonic()
+            time.sleep(4.0)  # computing past the 3 s loop window: still healthy
+            assert len(_pings_after(listener, t_spin)) >= 10 and d.healthy()
+            assert wait_until(lambda: d.merger.busy_since is None, 5)
+            d.merger.request("test", urgent=True)  # this one blocks
+        else:
+            d._message_lock.acquire()  # a publish that never gets the lock
+            d.mapper.version = 1
+        time.sleep(4.5)  # 3 s without looping, 1 s of it without CPU, and the watchdog's interval
+        t_quiet = time.monotonic()
+        time.sleep(1.0)
+        assert not _pings_after(listener, t_quiet), d.progress.stalled()
+        status, _ = control.request(d.config.daemon.control_socket, "status")
+        assert not status["watchdog"]["healthy"] and list(status["watchdog"]["stalled_threads"]) == [worker]
+        errors = [r.getMessage() for r in caplog.records
+                  if r.levelname == "ERROR" and worker in r.getMessage()]
+        assert len(errors) == 1 and "without using CPU" in errors[0], errors
+        if worker == "merging":
+            release.set()
+        else:
+            d._message_lock.release()
+        assert wait_until(lambda: _pings_after(listener, t_quiet + 1.0), 5)
+        assert any("makes progress again" in r.getMessage() for r in caplog.records)
+    finally:
+        release.set()
+        if worker == "sharing" and d._message_lock.locked():
+            d._message_lock.release()
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+        listener.close()
+
+
+def test_an_import_error_inside_merging_is_an_error_line_and_shown_in_status(wd, caplog, monkeypatch):
+    """A broken coopd.merging (here: merge_all missing, as a half-installed build) turns merging
+    off with an ERROR line and the reason in status and merge-now, not just a state field."""
+    monkeypatch.setitem(sys.modules, "coopd.merging", types.ModuleType("coopd.merging"))
+    caplog.set_level("INFO", logger="coopd.daemon")
+    d = Daemon(_config(wd))
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert any("merging is off: importing coopd.merging failed: ImportError" in e for e in errors), errors
+    d.start()
+    try:
+        status, _ = control.request(d.config.daemon.control_socket, "status")
+        assert status["merging"].startswith("merging: off: importing coopd.merging failed: ImportError")
+        assert "merge_all" in status["merges"]["start_error"]
+        merge, _ = control.request(d.config.daemon.control_socket, "merge-now")
+        assert merge["outcome"] == "failed" and "ImportError" in merge["detail"]
+    finally:
+        d.shutdown()
 
 
 def test_a_notify_queue_nobody_reads_never_blocks_the_daemon(wd):
