@@ -24,6 +24,11 @@ FUTURE_TOLERANCE_S = 1.0
 """A frame stamped more than this (FC seconds) after the FC's clock is from the future: dropped."""
 
 
+def worth_a_line(count: int) -> bool:
+    """Log the 1st, 10th, 100th and every 1000th of a repeated event: seen, never a flood."""
+    return count in (1, 10, 100) or count % 1000 == 0
+
+
 class FcClock(Protocol):
     """What the camera client needs from the vehicle link (coopd.vehicle.VehicleLink provides it)."""
 
@@ -116,10 +121,7 @@ class SocketDepthSource:
                 self._connect()
             except OSError as e:
                 self.counters["connect_failures"] += 1
-                if (
-                    self.counters["connect_failures"] in (1, 10, 100)
-                    or self.counters["connect_failures"] % 1000 == 0
-                ):
+                if worth_a_line(self.counters["connect_failures"]):
                     log.warning(
                         "camera %s not reachable (%s); retrying with backoff up to %.1f s",
                         self.config.address,
@@ -228,6 +230,14 @@ class SocketDepthSource:
         payload = np.empty(header.n // 2, dtype="<u2")  # bounded by max_payload_bytes, checked above
         self._recv_exact(memoryview(payload).cast("B"), deadline)
         now = time.monotonic()
+        problem = header.intrinsics.implausible()
+        if problem is not None:  # a misconfigured driver, not a broken stream: drop the frame, stay
+            self.counters["dropped_implausible_intrinsics"] += 1
+            if worth_a_line(self.counters["dropped_implausible_intrinsics"]):
+                log.warning("camera %s: frame %d dropped, implausible intrinsics: %s (%d dropped so far)",
+                            self.config.address, header.seq, problem,
+                            self.counters["dropped_implausible_intrinsics"])
+            return
         if not self._time_acceptable(header.t_us, now):
             return
         if self._last_seq is not None and header.seq != self._last_seq + 1:
@@ -255,9 +265,7 @@ class SocketDepthSource:
             fc_now = self.fc.fc_time_latest()
             if fc_now is not None and t_us * 1e-6 > fc_now + FUTURE_TOLERANCE_S:
                 self.counters["dropped_future_timestamp"] += 1
-                if self.counters["dropped_future_timestamp"] in (1, 10, 100) or (
-                    self.counters["dropped_future_timestamp"] % 1000 == 0
-                ):
+                if worth_a_line(self.counters["dropped_future_timestamp"]):
                     log.warning(
                         "camera frame stamped %.3f s FC time is %.3f s ahead of the FC clock: dropped "
                         "(%d so far)",

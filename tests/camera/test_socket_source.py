@@ -306,3 +306,39 @@ def test_stamps_that_stay_behind_the_reference_become_the_new_reference(sock_pat
         assert src.slot.take().t_fc < 3.0
     finally:
         drv.close()
+
+
+ABSURD_BUT_WELL_FORMED = {  # inside the protocol's hard limits, yet no depth camera looks like this
+    "fov_178_deg": {"fx": 0.2},
+    "fov_0.04_deg": {"fx": 9e4, "fy": 9e4},
+    "principal_point_left_of_image": {"cx": -60.0},
+    "principal_point_below_image": {"cy": 90.0},
+    "scale_6.5_cm_range": {"scale": 1e-6},
+    "scale_59_km_range": {"scale": 0.9},
+}
+
+
+@pytest.mark.parametrize("case", sorted(ABSURD_BUT_WELL_FORMED))
+def test_absurd_intrinsics_are_dropped_counted_and_logged_without_losing_the_connection(
+    sock_path, make_source, case, caplog
+):
+    good = dict(w=64, h=48, fx=40.0, fy=40.0, cx=31.5, cy=23.5)
+    bad = dict(good, **ABSURD_BUT_WELL_FORMED[case])
+
+    def script(conn, index, stopping):
+        for seq, fields in enumerate((bad, good, bad, good)):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=1000 * (seq + 1), **fields)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    caplog.set_level("WARNING", logger="coopd.camera")
+    try:
+        src = make_source()
+        assert wait_until(lambda: src.counters["frames"] == 2, 3.0), src.status()
+        assert src.counters["dropped_implausible_intrinsics"] == 2 and src.counters["connects"] == 1
+        assert src.slot.take().seq == 3
+        lines = [r.getMessage() for r in caplog.records if "implausible intrinsics" in r.getMessage()]
+        assert len(lines) == 1 and "frame 0 dropped" in lines[0], lines  # the 1st, then the 10th ...
+        print(lines[0])
+    finally:
+        drv.close()
