@@ -190,7 +190,9 @@ def format_status(s: dict) -> str:
         rows.append(
             (
                 "memory",
-                f"RSS {_mib(mem.get('rss_bytes'))} of {_mib(mem.get('budget_bytes'))} budget; "
+                f"RSS {_mib(mem.get('rss_bytes'))} of {_mib(mem.get('budget_bytes'))} budget"
+                + (f" (OVER BUDGET for {mem.get('over_budget_for_s')} s)" if mem.get("over_budget") else "")
+                + "; "
                 f"grids {_mib(mem.get('reserved_bytes'))} reserved"
                 + (f" ({entries})" if entries else "")
                 + (f"; {mem['refused']} reservations refused" if mem.get("refused") else ""),

@@ -81,6 +81,51 @@ FROM_BUILD = "from-build"
 """Daemon(merge_fn=FROM_BUILD): coopd.merging.merge_all if this build has it (None: not available)."""
 
 
+class RssWatch:
+    """Logs the process RSS crossing the memory budget: one WARNING when it goes over (with the
+    numbers and the ledger), one INFO when it is back under UNDER_FRACTION of the budget (so RSS
+    hovering at the budget is not a line per check); the state and the crossings for status."""
+
+    UNDER_FRACTION = 0.95
+
+    def __init__(self, budget: MemoryBudget):
+        self.budget = budget
+        self.crossings = 0
+        self.over_since: float | None = None
+        self.peak_over = 0
+
+    def check(self, rss: int) -> None:
+        """Called with a fresh RSS reading (main loop)."""
+        limit = self.budget.budget_bytes
+        if self.over_since is None and rss > limit:
+            self.over_since, self.crossings, self.peak_over = time.monotonic(), self.crossings + 1, rss
+            snap = self.budget.snapshot()
+            ledger = ", ".join(f"{k} {v / 2**20:.1f}" for k, v in snap["entries"].items()) or "nothing"
+            log.warning(
+                "memory: RSS %.0f MiB is over the budget of %.0f MiB (memory_mb) by %.0f MiB; baseline "
+                "%.0f MiB, grids reserved %.1f MiB (%s); crossing %d",
+                rss / 2**20, limit / 2**20, (rss - limit) / 2**20, snap["baseline_bytes"] / 2**20,
+                snap["reserved_bytes"] / 2**20, ledger, self.crossings,
+            )
+        elif self.over_since is not None:
+            self.peak_over = max(self.peak_over, rss)
+            if rss <= self.UNDER_FRACTION * limit:
+                log.info(
+                    "memory: RSS %.0f MiB back under the budget of %.0f MiB after %.1f s over "
+                    "(peak %.0f MiB)",
+                    rss / 2**20, limit / 2**20, time.monotonic() - self.over_since, self.peak_over / 2**20,
+                )
+                self.over_since = None
+
+    def status(self) -> dict:
+        since = self.over_since
+        return {
+            "over_budget": since is not None,
+            "over_budget_for_s": None if since is None else round(time.monotonic() - since, 1),
+            "over_budget_crossings": self.crossings,
+        }
+
+
 class StartupError(RuntimeError):
     """The daemon cannot start (socket in use, camera module missing, ...); the message says why."""
 
@@ -174,6 +219,7 @@ class Daemon:
         self.notifier.extend_timeout(120)
         self._warm_up()  # first: the kernels' memory then belongs to the budget's baseline
         self.budget = MemoryBudget.from_mb(config.daemon.memory_mb)
+        self.rss_watch = RssWatch(self.budget)
         self.priorities = ThreadPriorities()
         self.state_dir = Path(config.daemon.state_dir)
         self.store = CheckpointStore(self.state_dir, keep=config.daemon.checkpoint_keep)
@@ -588,7 +634,8 @@ class Daemon:
                     self._saved_versions[name] = m.version
 
     def _account_memory(self) -> None:
-        """Every grid in the ledger: local (cells), received (compressed bytes)."""
+        """Every grid in the ledger: local (cells), received (compressed bytes); RSS against the budget."""
+        self.rss_watch.check(self.budget.rss())
         self.budget.reserve("local", self.mapper.grid.size)
         held = set()
         for m in self._received_maps():

@@ -76,7 +76,7 @@ def build(daemon) -> dict:
         "sharing": None if daemon.sharing is None else _jsonable(daemon.sharing.stats()),
         "merges": merges,
         "merging": merges["state"],
-        "memory": daemon.budget.snapshot(),
+        "memory": {**daemon.budget.snapshot(), **daemon.rss_watch.status()},
         "threads": threads(daemon),
         "control": daemon.control.stats(),
         "checkpoint": {**daemon.store.stats(), "versions_reserved": daemon.versions.reserved,

@@ -262,6 +262,43 @@ def test_an_import_error_inside_merging_is_an_error_line_and_shown_in_status(wd,
         d.shutdown()
 
 
+def test_rss_over_the_budget_is_logged_once_per_crossing_and_shown_in_status(wd, caplog):
+    """The process grows 160 MiB over a budget set 80 MiB above its RSS, stays there, shrinks back,
+    grows again: one WARNING with the numbers per crossing, one INFO per return, status says so."""
+    d = Daemon(_config(wd))
+    budget_mb = (d.budget.rss() >> 20) + 80  # above what the daemon (kernels loaded) holds now
+    d.budget.budget_bytes = budget_mb << 20
+    caplog.set_level("INFO", logger="coopd.daemon")
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+
+    def memory():
+        return control.request(d.config.daemon.control_socket, "status")[0]["memory"]
+
+    try:
+        assert not memory()["over_budget"]
+        for crossing in (1, 2):
+            ballast = np.ones(160 << 20, np.uint8)  # touched: resident
+            assert wait_until(lambda: memory()["over_budget"], 5)
+            time.sleep(1.0)  # five more checks while over: no more lines
+            m = memory()
+            assert m["over_budget_crossings"] == crossing and m["rss_over_budget"]
+            assert m["over_budget_for_s"] >= 1
+            del ballast
+            assert wait_until(lambda: not memory()["over_budget"], 5)
+        over = [r.getMessage() for r in caplog.records if "over the budget" in r.getMessage()]
+        back = [r.getMessage() for r in caplog.records if "back under the budget" in r.getMessage()]
+        print(over[0], back[0], sep="\n")
+        assert len(over) == 2 and len(back) == 2
+        assert f"over the budget of {budget_mb} MiB (memory_mb)" in over[0] and "crossing 2" in over[1]
+        assert all(r.levelname == "WARNING" for r in caplog.records if "over the budget" in r.getMessage())
+    finally:
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+
+
 def test_a_notify_queue_nobody_reads_never_blocks_the_daemon(wd):
     deaf = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     deaf.bind(str(wd / "deaf.sock"))
