@@ -544,6 +544,9 @@ class ControlServer:
         self._write(conn)
 
     def _write(self, conn: _Conn) -> None:
+        if not conn.out:
+            self._close(conn)
+            return
         try:
             sent = conn.sock.send(conn.out[0][: 1 << 20])
         except (BlockingIOError, InterruptedError):
