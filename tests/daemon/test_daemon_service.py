@@ -218,10 +218,13 @@ def test_a_hung_merging_or_sharing_thread_stops_the_watchdog_and_is_logged(wd, w
         else:
             d._message_lock.acquire()  # a publish that never gets the lock
             d.mapper.version = 1
+        t_hang = time.monotonic()
         time.sleep(4.5)  # 3 s without looping, 1 s of it without CPU, and the watchdog's interval
         t_quiet = time.monotonic()
         time.sleep(1.0)
         assert not _pings_after(listener, t_quiet), d.progress.stalled()
+        last = max(t for t, _ in listener.with_field("WATCHDOG=1"))
+        print(f"{worker} hung: last WATCHDOG=1 {last - t_hang:.2f} s after the hang; {d.stalled_threads()}")
         status, _ = control.request(d.config.daemon.control_socket, "status")
         assert not status["watchdog"]["healthy"] and list(status["watchdog"]["stalled_threads"]) == [worker]
         errors = [r.getMessage() for r in caplog.records
