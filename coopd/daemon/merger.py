@@ -76,7 +76,7 @@ def find_merge_all() -> tuple[Callable | None, str | None]:
     try:
         from coopd.merging import merge_all
     except ModuleNotFoundError as e:
-        if e.name in ("coopd.merging", "coopd.merging.multi"):
+        if e.name == "coopd.merging":
             log.warning("%s: the global map is the local map", NOT_AVAILABLE)
             return None, None
         problem = f"importing coopd.merging failed: {type(e).__name__}: {e}"
