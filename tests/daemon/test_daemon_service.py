@@ -22,7 +22,7 @@ from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import CheckpointStore, VersionReserve
 from coopd.daemon.config import from_dict
 from coopd.daemon.main import main
-from coopd.daemon.merger import NOT_AVAILABLE, Merger
+from coopd.daemon.merger import NOT_AVAILABLE, Merger, find_merge_all
 from coopd.daemon.notify import Notifier
 from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, StartupError, save_map_frame
 from coopd.geometry import rigid, rotation_z
@@ -245,6 +245,13 @@ def test_a_hung_merging_or_sharing_thread_stops_the_watchdog_and_is_logged(wd, w
         runner.join(5)
         d.shutdown()
         listener.close()
+
+
+def test_a_build_without_merging_is_a_warning_not_an_error(caplog, monkeypatch):
+    monkeypatch.setitem(sys.modules, "coopd.merging", None)  # the package is not installed
+    caplog.set_level("INFO", logger="coopd.daemon")
+    assert find_merge_all() == (None, None)
+    assert [r.levelname for r in caplog.records if NOT_AVAILABLE in r.getMessage()] == ["WARNING"]
 
 
 def test_an_import_error_inside_merging_is_an_error_line_and_shown_in_status(wd, caplog, monkeypatch):
