@@ -16,9 +16,10 @@ still being read after evict_reply_after_s, so a slow or stuck client can't lock
 A reply must be read completely by a deadline set when it is ready (timeout_s + its size /
 min_reply_rate; progress does not move it), and the bytes of replies not yet sent are bounded by
 max_reply_buffer_bytes (a blob reply that does not fit next to the others is refused "busy").
-One selector thread does all socket I/O; handlers run in a small
-worker pool so a slow command never stalls the socket. Nothing a client sends can crash the
-server: every failure is a counted error reply or a closed connection.
+One selector thread does all socket I/O; handlers run in a small worker pool so a slow command
+never stalls the socket, and quick_commands (status, ping) on a worker of their own so slow
+commands holding every worker never delay them. Nothing a client sends can crash the server:
+every failure is a counted error reply or a closed connection.
 """
 
 import errno
@@ -132,6 +133,7 @@ class ControlServer:
         workers: int = 2,
         max_reply_buffer_bytes: int = DEFAULT_MAX_REPLY_BUFFER,
         min_reply_rate: float = DEFAULT_MIN_REPLY_RATE,
+        quick_commands=("status",),
     ):
         if max_clients < 1 or max_request_bytes < 64 or timeout_s <= 0:
             raise ValueError("max_clients >= 1, max_request_bytes >= 64 and timeout_s > 0 required")
@@ -158,6 +160,10 @@ class ControlServer:
         self._accepting = False
         self._workers = workers
         self._pool: ThreadPoolExecutor | None = None
+        self.quick_commands = frozenset(quick_commands) | {"ping"}
+        """Commands answered on a worker of their own: slow ones (merge-now, a big dump-map) holding
+        every other worker never keep `status` waiting."""
+        self._quick_pool: ThreadPoolExecutor | None = None
         self._sel: selectors.BaseSelector | None = None
         self._listener: socket.socket | None = None
         self._conns: dict[int, _Conn] = {}
@@ -175,6 +181,7 @@ class ControlServer:
     def start(self) -> "ControlServer":
         self._listener = self._bind()
         self._pool = ThreadPoolExecutor(self._workers, "coopd-control-cmd")
+        self._quick_pool = ThreadPoolExecutor(1, "coopd-control-quick")
         self._sel = selectors.DefaultSelector()
         self._sel.register(self._listener, selectors.EVENT_READ, "listen")
         self._accepting = True
@@ -196,8 +203,9 @@ class ControlServer:
         self._wake()
         if self._thread is not None:
             self._thread.join(timeout=5)
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        for pool in (self._pool, self._quick_pool):
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
         for conn in list(self._conns.values()):
             self._close(conn)
         if self._listener is not None:
@@ -466,7 +474,8 @@ class ControlServer:
         conn.phase = "handling"
         self._sel.unregister(conn.sock)
         args = request.get("args") or {}
-        self._pool.submit(self._handle, conn, cmd, handler, args)
+        pool = self._quick_pool if cmd in self.quick_commands else self._pool
+        pool.submit(self._handle, conn, cmd, handler, args)
 
     def _handle(self, conn: _Conn, cmd: str, handler: Handler, args: dict) -> None:
         """Runs in a worker: the reply bytes go back to the loop thread."""

@@ -278,6 +278,7 @@ class Daemon:
             max_clients=config.daemon.control_max_clients,
             timeout_s=config.daemon.control_timeout_s,
             max_reply_buffer_bytes=control_reply_buffer(self.budget),
+            quick_commands=("status", "peers"),
         )
         self.control.on_thread_start = lambda: self.priorities.apply("control")
         self.watchdog = WatchdogPinger(self.notifier, self.healthy)

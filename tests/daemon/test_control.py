@@ -453,3 +453,25 @@ def wait_for(predicate, timeout: float) -> bool:
             return True
         time.sleep(0.01)
     return bool(predicate())
+
+
+def test_status_is_answered_while_slow_commands_hold_every_worker(sock_dir):
+    """Two merge-now-like commands (2 s each) hold both command workers: status, a quick command,
+    runs on its own worker and is answered at once."""
+    srv = ControlServer(os.path.join(sock_dir, "control.sock"), HANDLERS, max_clients=8, timeout_s=5.0,
+                        quick_commands={"status"})
+    srv.start()
+    slow = [threading.Thread(target=control.request, args=(srv.path, "slow", {"s": 2.0})) for _ in range(3)]
+    try:
+        for t in slow:
+            t.start()
+        time.sleep(0.2)
+        t0 = time.monotonic()
+        result, _ = control.request(srv.path, "status", timeout_s=5)
+        elapsed = time.monotonic() - t0
+        print(f"status answered in {elapsed * 1e3:.0f} ms while 3 slow commands ran")
+        assert result["state"] == "running" and elapsed < 1.0
+    finally:
+        for t in slow:
+            t.join(10)
+        srv.stop()
