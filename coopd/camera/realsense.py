@@ -88,6 +88,10 @@ class RealSenseSource:
         scale = profile.get_device().first_depth_sensor().get_depth_scale()
         vp = profile.get_stream(rs.stream.depth).as_video_stream_profile().get_intrinsics()
         self.intrinsics = Intrinsics(vp.width, vp.height, vp.fx, vp.fy, vp.ppx, vp.ppy, float(scale))
+        problem = self.intrinsics.implausible()
+        if problem is not None:
+            pipeline.stop()
+            raise CameraUnavailable(f"RealSense reports implausible intrinsics: {problem}")
         log.info(
             "RealSense %s streaming %dx%d@%d, %.5f m/unit",
             serials[0] if self.serial is None else self.serial,

@@ -9,6 +9,7 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -19,6 +20,23 @@ from .slot import LatestSlot
 log = logging.getLogger("coopd.camera")
 
 RECV_POLL_S = 0.1
+FUTURE_TOLERANCE_S = 1.0
+"""A frame stamped more than this (FC seconds) after the FC's clock is from the future: dropped."""
+
+
+def worth_a_line(count: int) -> bool:
+    """Log the 1st, 10th, 100th and every 1000th of a repeated event: seen, never a flood."""
+    return count in (1, 10, 100) or count % 1000 == 0
+
+
+class FcClock(Protocol):
+    """What the camera client needs from the vehicle link (coopd.vehicle.VehicleLink provides it)."""
+
+    def fc_time_latest(self) -> float | None:
+        """An FC time (seconds since its boot) that has surely passed, or None while unknown."""
+
+    def fc_epoch(self) -> int:
+        """Changes whenever the FC's time base restarted (a reboot)."""
 
 
 @dataclass(frozen=True)
@@ -31,6 +49,7 @@ class SocketSourceConfig:
     stall_timeout_s: float = 2.0  # no byte for this long on an open connection: reconnect
     frame_timeout_s: float = 5.0  # a started frame must complete within this (no byte-trickling driver)
     backoff_s: tuple[float, float] = (0.1, 2.0)
+    relatch_after_s: float = 1.0  # every frame older than the reference for this long: take the new clock
 
     def __post_init__(self):
         if not isinstance(self.address, str) or not self.address:
@@ -41,6 +60,7 @@ class SocketSourceConfig:
             0 < self.stall_timeout_s <= 60
             and 0 < self.connect_timeout_s <= 60
             and 0 < self.frame_timeout_s <= 600
+            and 0 < self.relatch_after_s <= 60
         ):
             raise ValueError("camera timeouts must be within (0, 60] s")
 
@@ -54,10 +74,17 @@ class _Closed(Exception):
 
 
 class SocketDepthSource:
-    """One thread per camera: connect, read frame after frame into a LatestSlot, reconnect with backoff."""
+    """One thread per camera: connect, read frame after frame into a LatestSlot, reconnect with backoff.
 
-    def __init__(self, config: SocketSourceConfig, slot: LatestSlot | None = None):
+    Frame times must increase. The reference they are checked against (the newest accepted stamp)
+    never latches: a frame stamped after the FC's clock now is dropped without moving it, an FC
+    reboot (fc_epoch changes) resets it, and frames all older than it for relatch_after_s make the
+    newest of them the reference (a driver whose clock restarted without reconnecting).
+    """
+
+    def __init__(self, config: SocketSourceConfig, slot: LatestSlot | None = None, fc: FcClock | None = None):
         self.config = config
+        self.fc = fc
         self.slot: LatestSlot[DepthFrame] = slot if slot is not None else LatestSlot()
         self.counters: Counter = Counter()
         self.connected = False
@@ -65,6 +92,8 @@ class SocketDepthSource:
         self.native_id: int | None = None
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
+        self._behind_since: float | None = None  # local time of the first of consecutive older frames
+        self._fc_epoch = fc.fc_epoch() if fc is not None else 0
         self._sock: socket.socket | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -92,10 +121,7 @@ class SocketDepthSource:
                 self._connect()
             except OSError as e:
                 self.counters["connect_failures"] += 1
-                if (
-                    self.counters["connect_failures"] in (1, 10, 100)
-                    or self.counters["connect_failures"] % 1000 == 0
-                ):
+                if worth_a_line(self.counters["connect_failures"]):
                     log.warning(
                         "camera %s not reachable (%s); retrying with backoff up to %.1f s",
                         self.config.address,
@@ -134,7 +160,7 @@ class SocketDepthSource:
         self._sock = s
         self.connected = True
         self.counters["connects"] += 1
-        self._last_seq = self._last_t_us = None  # a restarted driver may restart its sequence and clock
+        self._last_seq = self._last_t_us = self._behind_since = None  # a restarted driver restarts both
         log.info("camera connected: %s (connection #%d)", addr, self.counters["connects"])
 
     def _disconnect(self, reason: str) -> None:
@@ -204,8 +230,15 @@ class SocketDepthSource:
         payload = np.empty(header.n // 2, dtype="<u2")  # bounded by max_payload_bytes, checked above
         self._recv_exact(memoryview(payload).cast("B"), deadline)
         now = time.monotonic()
-        if self._last_t_us is not None and header.t_us <= self._last_t_us:
-            self.counters["dropped_timestamp_not_increasing"] += 1
+        problem = header.intrinsics.implausible()
+        if problem is not None:  # a misconfigured driver, not a broken stream: drop the frame, stay
+            self.counters["dropped_implausible_intrinsics"] += 1
+            if worth_a_line(self.counters["dropped_implausible_intrinsics"]):
+                log.warning("camera %s: frame %d dropped, implausible intrinsics: %s (%d dropped so far)",
+                            self.config.address, header.seq, problem,
+                            self.counters["dropped_implausible_intrinsics"])
+            return
+        if not self._time_acceptable(header.t_us, now):
             return
         if self._last_seq is not None and header.seq != self._last_seq + 1:
             self.counters["seq_gaps"] += 1
@@ -220,6 +253,47 @@ class SocketDepthSource:
         self.counters["frames"] += 1
         self.last_frame_local = now
         self.slot.put(frame)
+
+    def _time_acceptable(self, t_us: int, now: float) -> bool:
+        """Check a frame's FC time against the FC's clock and the reference; drops are counted."""
+        if self.fc is not None:
+            epoch = self.fc.fc_epoch()
+            if epoch != self._fc_epoch:
+                self._fc_epoch = epoch
+                if self._last_t_us is not None:
+                    self._reset_reference("fc_reboot", t_us)
+            fc_now = self.fc.fc_time_latest()
+            if fc_now is not None and t_us * 1e-6 > fc_now + FUTURE_TOLERANCE_S:
+                self.counters["dropped_future_timestamp"] += 1
+                if worth_a_line(self.counters["dropped_future_timestamp"]):
+                    log.warning(
+                        "camera frame stamped %.3f s FC time is %.3f s ahead of the FC clock: dropped "
+                        "(%d so far)",
+                        t_us * 1e-6,
+                        t_us * 1e-6 - fc_now,
+                        self.counters["dropped_future_timestamp"],
+                    )
+                return False
+        if self._last_t_us is not None and t_us <= self._last_t_us:
+            if self._behind_since is None:
+                self._behind_since = now
+            if now - self._behind_since < self.config.relatch_after_s:
+                self.counters["dropped_timestamp_not_increasing"] += 1
+                return False
+            self._reset_reference("stamps_went_back", t_us)
+        self._behind_since = None
+        return True
+
+    def _reset_reference(self, reason: str, t_us: int) -> None:
+        """Forget the newest accepted stamp: the FC or the driver restarted its clock."""
+        self.counters["time_reference_resets_" + reason] += 1
+        log.warning(
+            "camera time reference reset (%s): stamps continue at %.3f s FC time after %.3f s",
+            reason.replace("_", " "),
+            t_us * 1e-6,
+            (self._last_t_us or 0) * 1e-6,
+        )
+        self._last_t_us = self._behind_since = None
 
     def status(self) -> dict:
         """Snapshot for status reports."""

@@ -171,6 +171,13 @@ def format_status(s: dict) -> str:
                 + ("" if mg.get("distributed", True) else ", not distributed"),
             )
         )
+    if mg.get("start_error"):
+        rows.append(("merging", f"{mg.get('state', '-')}" if not mg.get("available", True)
+                     else f"{mg.get('state', '-')}; {mg['start_error']}"))
+    stalled = (s.get("watchdog") or {}).get("stalled_threads") or {}
+    if stalled:
+        rows.append(("health", "not healthy (watchdog not fed): "
+                     + "; ".join(f"{k} {v}" for k, v in sorted(stalled.items()))))
     if mg.get("provisional"):
         rows.append(("provisional", "merges found, held out of the global map until confirmed: "
                      + ", ".join(f"vehicle {v}" for v in mg["provisional"])))
@@ -183,7 +190,9 @@ def format_status(s: dict) -> str:
         rows.append(
             (
                 "memory",
-                f"RSS {_mib(mem.get('rss_bytes'))} of {_mib(mem.get('budget_bytes'))} budget; "
+                f"RSS {_mib(mem.get('rss_bytes'))} of {_mib(mem.get('budget_bytes'))} budget"
+                + (f" (OVER BUDGET for {mem.get('over_budget_for_s')} s)" if mem.get("over_budget") else "")
+                + "; "
                 f"grids {_mib(mem.get('reserved_bytes'))} reserved"
                 + (f" ({entries})" if entries else "")
                 + (f"; {mem['refused']} reservations refused" if mem.get("refused") else ""),
@@ -209,7 +218,9 @@ def format_status(s: dict) -> str:
                 "control",
                 f"{c.get('served', 0)} served, {c.get('bad_requests', 0)} bad, "
                 f"{c.get('oversize', 0)} oversize, {c.get('timeouts', 0)} timed out, "
-                f"{c.get('evicted', 0)} evicted",
+                f"{c.get('evicted', 0)} evicted; replies: {c.get('reply_timeouts', 0)} cut at their "
+                f"deadline, {c.get('evicted_replies', 0)} cut for room, {c.get('refused_busy', 0)} busy, "
+                f"{c.get('reply_buffer_bytes', 0)} of {c.get('reply_buffer_limit', 0)} B queued",
             )
         )
     cp = s.get("checkpoint") or {}

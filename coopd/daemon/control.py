@@ -11,10 +11,15 @@ Protocol, version 1 (docs/operations.md, "Control protocol"); one request per co
 
 Requests are bounded (max_request_bytes, refused from the length prefix before anything is read),
 must arrive completely within timeout_s of the connect, and at most max_clients connections are
-open at once (a new one evicts the oldest still sending its request, so a slow or stuck client
-can't lock coopctl out). One selector thread does all socket I/O; handlers run in a small
-worker pool so a slow command never stalls the socket. Nothing a client sends can crash the
-server: every failure is a counted error reply or a closed connection.
+open at once (a new one evicts the oldest still sending its request, or else the oldest reply
+still being read after evict_reply_after_s, so a slow or stuck client can't lock coopctl out).
+A reply must be read completely by a deadline set when it is ready (timeout_s + its size /
+min_reply_rate; progress does not move it), and the bytes of replies not yet sent are bounded by
+max_reply_buffer_bytes (a blob reply that does not fit next to the others is refused "busy").
+One selector thread does all socket I/O; handlers run in a small worker pool so a slow command
+never stalls the socket, and quick_commands (status, ping) on a worker of their own so slow
+commands holding every worker never delay them. Nothing a client sends can crash the server:
+every failure is a counted error reply or a closed connection.
 """
 
 import errno
@@ -43,6 +48,13 @@ LENGTH = struct.Struct(">I")
 DEFAULT_MAX_REQUEST = 64 * 1024
 DEFAULT_MAX_REPLY = 16 * 1024 * 1024
 """coopctl's bound on a reply's JSON part (blobs have their own bound)."""
+DEFAULT_MAX_REPLY_BUFFER = 64 * 1024 * 1024
+"""Bytes of replies queued for slow readers, all connections together (one reply may exceed it
+when it is the only one: a map the daemon holds anyway)."""
+DEFAULT_MIN_REPLY_RATE = 4 * 1024 * 1024
+"""Bytes/s a reader must at least take: a reply's deadline is timeout_s + its size / this rate."""
+EVICT_REPLY_AFTER_S = 0.3
+"""A reply still unread after this may be cut when every slot is taken and a client waits."""
 
 
 class CommandFailed(Exception):
@@ -71,7 +83,8 @@ def error_reply(code: str, message: str) -> bytes:
 
 # ------------------------------------------------------------------------------------------ server
 class _Conn:
-    __slots__ = ("sock", "opened", "deadline", "buf", "need", "out", "phase", "peer_uid")
+    __slots__ = ("sock", "opened", "deadline", "buf", "need", "out", "phase", "peer_uid", "charged",
+                 "replied")
 
     def __init__(self, sock: socket.socket, timeout_s: float):
         self.sock = sock
@@ -80,9 +93,13 @@ class _Conn:
         self.buf = bytearray()
         self.need: int | None = None
         """Body length once the prefix is in."""
-        self.out: memoryview | None = None
+        self.out: list[memoryview] = []
+        """Reply parts still to send (head, blob): a blob is sent from the handler's bytes, not copied."""
         self.phase = "read"
         self.peer_uid = -1
+        self.charged = 0
+        """Reply bytes charged to the server's reply buffer for this connection."""
+        self.replied = 0.0
 
 
 class ControlServer:
@@ -98,6 +115,9 @@ class ControlServer:
         "evicted",
         "handler_errors",
         "unknown_commands",
+        "reply_timeouts",
+        "evicted_replies",
+        "refused_busy",
     )
 
     def __init__(
@@ -111,9 +131,14 @@ class ControlServer:
         mode: int = 0o660,
         group: int | None = None,
         workers: int = 2,
+        max_reply_buffer_bytes: int = DEFAULT_MAX_REPLY_BUFFER,
+        min_reply_rate: float = DEFAULT_MIN_REPLY_RATE,
+        quick_commands=("status",),
     ):
         if max_clients < 1 or max_request_bytes < 64 or timeout_s <= 0:
             raise ValueError("max_clients >= 1, max_request_bytes >= 64 and timeout_s > 0 required")
+        if max_reply_buffer_bytes < 1 << 20 or min_reply_rate < 1 << 10:
+            raise ValueError("max_reply_buffer_bytes >= 1 MiB and min_reply_rate >= 1 KiB/s required")
         self.path = os.fspath(path)
         if len(os.fsencode(self.path)) > MAX_SOCKET_PATH:
             raise ValueError(f"control socket path {self.path!r} is longer than {MAX_SOCKET_PATH} bytes")
@@ -124,12 +149,21 @@ class ControlServer:
         self.timeout_s = timeout_s
         self.mode = mode
         self.group = group
+        self.max_reply_buffer_bytes = max_reply_buffer_bytes
+        self.min_reply_rate = float(min_reply_rate)
         self.counters = dict.fromkeys(self.COUNTERS, 0)
         self.evict_after_s = min(0.02, timeout_s / 2)
         """A connection that has not sent its whole request after this may be evicted when full."""
+        self.evict_reply_after_s = min(EVICT_REPLY_AFTER_S, timeout_s)
+        self._buffered = 0
+        """Reply bytes charged and not yet sent or dropped (under _done_lock)."""
         self._accepting = False
         self._workers = workers
         self._pool: ThreadPoolExecutor | None = None
+        self.quick_commands = frozenset(quick_commands) | {"ping"}
+        """Commands answered on a worker of their own: slow ones (merge-now, a big dump-map) holding
+        every other worker never keep `status` waiting."""
+        self._quick_pool: ThreadPoolExecutor | None = None
         self._sel: selectors.BaseSelector | None = None
         self._listener: socket.socket | None = None
         self._conns: dict[int, _Conn] = {}
@@ -147,6 +181,7 @@ class ControlServer:
     def start(self) -> "ControlServer":
         self._listener = self._bind()
         self._pool = ThreadPoolExecutor(self._workers, "coopd-control-cmd")
+        self._quick_pool = ThreadPoolExecutor(1, "coopd-control-quick")
         self._sel = selectors.DefaultSelector()
         self._sel.register(self._listener, selectors.EVENT_READ, "listen")
         self._accepting = True
@@ -168,8 +203,9 @@ class ControlServer:
         self._wake()
         if self._thread is not None:
             self._thread.join(timeout=5)
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        for pool in (self._pool, self._quick_pool):
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
         for conn in list(self._conns.values()):
             self._close(conn)
         if self._listener is not None:
@@ -191,7 +227,12 @@ class ControlServer:
 
     def stats(self) -> dict:
         """Counters for `coopctl status` (garbage, oversize, slow clients ... are counted here)."""
-        return dict(self.counters, open_connections=len(self._conns))
+        return dict(
+            self.counters,
+            open_connections=len(self._conns),
+            reply_buffer_bytes=self._buffered,
+            reply_buffer_limit=self.max_reply_buffer_bytes,
+        )
 
     def _ping(self, args: dict) -> dict:
         return {"protocol": PROTOCOL_VERSION, "commands": sorted(self.handlers), "pid": os.getpid()}
@@ -292,9 +333,21 @@ class ControlServer:
             self._accepting = on
 
     def _evictable_at(self) -> float | None:
-        """When the oldest connection still sending its request may be evicted (None: none is)."""
-        reading = [c.opened for c in self._conns.values() if c.phase == "read"]
-        return min(reading) + self.evict_after_s if reading else None
+        """When a connection may be evicted to make room (None: none can be): the oldest one still
+        sending its request, else the oldest reply still being read."""
+        victim = self._victim()
+        if victim is None:
+            return None
+        if victim.phase == "read":
+            return victim.opened + self.evict_after_s
+        return victim.replied + self.evict_reply_after_s
+
+    def _victim(self) -> "_Conn | None":
+        reading = [c for c in self._conns.values() if c.phase == "read"]
+        if reading:
+            return min(reading, key=lambda c: c.opened)
+        writing = [c for c in self._conns.values() if c.phase == "write"]
+        return min(writing, key=lambda c: c.replied) if writing else None
 
     def _wake(self) -> None:
         try:
@@ -331,15 +384,34 @@ class ControlServer:
 
     def _evict_one(self) -> bool:
         """Drop the oldest connection still sending its request after evict_after_s (a slow or
-        stuck client: coopctl sends its whole request right after connecting)."""
+        stuck client: coopctl sends its whole request right after connecting), else the oldest
+        reply still unread after evict_reply_after_s (coopctl reads a 100 MiB map in a fraction)."""
         at = self._evictable_at()
         if at is None or at > time.monotonic():
             return False
-        victim = min((c for c in self._conns.values() if c.phase == "read"), key=lambda c: c.opened)
-        self.counters["evicted"] += 1
-        self._send_now(victim.sock, error_reply("evicted", "connection dropped to make room for another"))
+        victim = self._victim()
+        if victim.phase == "read":
+            self.counters["evicted"] += 1
+            self._send_now(victim.sock, error_reply("evicted", "connection dropped to make room for another"))
+        else:
+            self.counters["evicted_replies"] += 1
+            self._log_cut(victim, "cut to make room for another client")
         self._close(victim)
         return True
+
+    def _log_cut(self, conn: "_Conn", why: str) -> None:
+        unsent = sum(len(p) for p in conn.out)
+        log.warning(
+            "control: a %d-byte reply to uid %d %s after %.1f s, %d bytes unread (%d reply timeouts, "
+            "%d replies cut for room so far)",
+            conn.charged,
+            conn.peer_uid,
+            why,
+            time.monotonic() - conn.replied,
+            unsent,
+            self.counters["reply_timeouts"],
+            self.counters["evicted_replies"],
+        )
 
     def _read(self, conn: _Conn) -> None:
         want = LENGTH.size - len(conn.buf) if conn.need is None else conn.need - len(conn.buf)
@@ -402,7 +474,8 @@ class ControlServer:
         conn.phase = "handling"
         self._sel.unregister(conn.sock)
         args = request.get("args") or {}
-        self._pool.submit(self._handle, conn, cmd, handler, args)
+        pool = self._quick_pool if cmd in self.quick_commands else self._pool
+        pool.submit(self._handle, conn, cmd, handler, args)
 
     def _handle(self, conn: _Conn, cmd: str, handler: Handler, args: dict) -> None:
         """Runs in a worker: the reply bytes go back to the loop thread."""
@@ -418,24 +491,41 @@ class ControlServer:
                         "blob_bytes": len(result.data),
                     }
                 )
-                reply = head + bytes(result.data)
+                reply = [head, result.data]
             else:
-                reply = encode_frame({"v": PROTOCOL_VERSION, "ok": True, "result": result})
+                reply = [encode_frame({"v": PROTOCOL_VERSION, "ok": True, "result": result})]
         except CommandFailed as e:
-            reply = error_reply("failed", str(e))
+            reply = [error_reply("failed", str(e))]
         except Exception as e:
             self.counters["handler_errors"] += 1
             log.exception("control: command %s failed", cmd)
-            reply = error_reply("internal", f"{cmd} failed inside the daemon: {type(e).__name__}: {e}")
+            reply = [error_reply("internal", f"{cmd} failed inside the daemon: {type(e).__name__}: {e}")]
+        size = sum(len(p) for p in reply)
         log.debug(
-            "control: %s from uid %d in %.1f ms, %d reply bytes",
-            cmd,
-            conn.peer_uid,
-            1000 * (time.monotonic() - t0),
-            len(reply),
+            "control: %s from uid %d in %.1f ms, %d reply bytes", cmd, conn.peer_uid,
+            1000 * (time.monotonic() - t0), size,
         )
         with self._done_lock:
+            if len(reply) > 1 and self._buffered and self._buffered + size > self.max_reply_buffer_bytes:
+                self.counters["refused_busy"] += 1
+                busy = self._buffered
+                reply = [error_reply(
+                    "busy",
+                    f"a {size}-byte reply does not fit next to the {busy} bytes other clients are still "
+                    f"reading (limit {self.max_reply_buffer_bytes}); try again",
+                )]
+                size = len(reply[0])
+            else:
+                busy = 0
+            conn.charged = size
+            self._buffered += size
             self._done.append((conn, reply))
+        if busy:
+            n = self.counters["refused_busy"]
+            if n in (1, 10, 100) or n % 1000 == 0:
+                log.warning("control: refused a %s reply: %d reply bytes already queued for other "
+                            "clients (limit %d; %d refused so far)", cmd, busy,
+                            self.max_reply_buffer_bytes, n)
         self._wake()
 
     def _collect_replies(self) -> None:
@@ -443,41 +533,53 @@ class ControlServer:
             done, self._done = self._done, []
         for conn, reply in done:
             if conn.sock.fileno() < 0:
+                self._uncharge(conn)
                 continue
             conn.phase = "read"  # so _reply registers it
             self._sel.register(conn.sock, selectors.EVENT_READ, conn)
             self._reply(conn, reply, served=True)
 
-    def _reply(self, conn: _Conn, data: bytes, served: bool = False) -> None:
+    def _reply(self, conn: _Conn, data: "bytes | list", served: bool = False) -> None:
+        """Queue a reply (bytes, or parts sent in order) under a deadline that progress does not move."""
         if served:
             self.counters["served"] += 1
+        parts = [memoryview(p) for p in (data if isinstance(data, list) else [data])]
+        size = sum(len(p) for p in parts)
         conn.phase = "write"
-        conn.out = memoryview(data)
-        conn.deadline = time.monotonic() + self.timeout_s
+        conn.out = [p for p in parts if len(p)]
+        conn.replied = time.monotonic()
+        conn.deadline = conn.replied + self.timeout_s + size / self.min_reply_rate
         self._sel.modify(conn.sock, selectors.EVENT_WRITE, conn)
         self._write(conn)
 
     def _write(self, conn: _Conn) -> None:
+        if not conn.out:
+            self._close(conn)
+            return
         try:
-            sent = conn.sock.send(conn.out[: 1 << 20])
+            sent = conn.sock.send(conn.out[0][: 1 << 20])
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
             self._close(conn)
             return
-        conn.out = conn.out[sent:]
-        conn.deadline = time.monotonic() + self.timeout_s  # idle timeout: progress resets it
-        if not len(conn.out):
+        conn.out[0] = conn.out[0][sent:]
+        if not len(conn.out[0]):
+            conn.out.pop(0)
+        if not conn.out:
             self._close(conn)
 
     def _expire(self, now: float) -> None:
         for conn in list(self._conns.values()):
             if conn.phase != "handling" and now > conn.deadline:
-                self.counters["timeouts"] += 1
                 if conn.phase == "read":
+                    self.counters["timeouts"] += 1
                     self._send_now(
                         conn.sock, error_reply("timeout", f"request not complete within {self.timeout_s} s")
                     )
+                else:
+                    self.counters["reply_timeouts"] += 1
+                    self._log_cut(conn, "not read by its deadline")
                 self._close(conn)
 
     def _send_now(self, sock: socket.socket, data: bytes) -> None:
@@ -496,6 +598,15 @@ class ControlServer:
             except (KeyError, ValueError):
                 pass
             conn.sock.close()
+        conn.out = []
+        self._uncharge(conn)
+
+    def _uncharge(self, conn: _Conn) -> None:
+        """Give the connection's reply bytes back to the reply buffer (once)."""
+        if conn.charged:
+            with self._done_lock:
+                self._buffered -= conn.charged
+                conn.charged = 0
 
 
 def _refuse_constant(name: str):

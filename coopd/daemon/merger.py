@@ -37,6 +37,7 @@ from collections.abc import Callable
 import numpy as np
 
 from coopd.daemon.budget import BudgetExceeded, MemoryBudget
+from coopd.daemon.threads import WorkerProgress
 from coopd.geometry import rotation_angle_deg
 from coopd.grid import OCCUPIED_THRESHOLD, OccupancyGrid, fuse_transformed
 from coopd.sharing.wire import (
@@ -54,6 +55,10 @@ from coopd.sharing.wire import (
 log = logging.getLogger("coopd.daemon")
 
 NOT_AVAILABLE = "merging: not available in this build"
+PROGRESS_NAME = "merging"
+"""The merging thread's name in the watchdog's WorkerProgress."""
+BEAT_PERIOD_S = 1.0
+"""The idle merging thread wakes at least this often to show it is alive."""
 SETTLED_GROWTH = 1.01
 """A pair whose known cells grew less than this since the last merge has settled (the flight is over)."""
 SETTLED_RECHECK = 1.05
@@ -64,13 +69,23 @@ received maps (1 B each) plus merge_all's own peak, measured with tracemalloc at
 input cell (global map copy, preprocessing, features) on small_house maps of 0.8-2.6 M cells."""
 
 
-def find_merge_all() -> Callable | None:
-    """coopd.merging.merge_all when this build has it, else None."""
+def find_merge_all() -> tuple[Callable | None, str | None]:
+    """(coopd.merging.merge_all, None) when this build has it, else (None, why). A build without
+    the coopd.merging package is a packaging choice (a WARNING); a failure inside it (a dependency
+    missing, any error while importing) turns merging off and is an ERROR line with the traceback."""
     try:
         from coopd.merging import merge_all
-    except ImportError:
-        return None
-    return merge_all
+    except ModuleNotFoundError as e:
+        if e.name == "coopd.merging":
+            log.warning("%s: the global map is the local map", NOT_AVAILABLE)
+            return None, None
+        problem = f"importing coopd.merging failed: {type(e).__name__}: {e}"
+    except Exception as e:  # ImportError of a dependency, or a bug at import time
+        problem = f"importing coopd.merging failed: {type(e).__name__}: {e}"
+    else:
+        return merge_all, None
+    log.error("merging is off: %s", problem, exc_info=True)
+    return None, problem
 
 
 def in_global_map(entry: dict) -> bool:
@@ -112,8 +127,14 @@ class Merger:
         defer_full_s: float = 0.0,
         recheck_growth: float | None = 1.3,
         confirm_before_fusing: bool = False,
+        progress: WorkerProgress | None = None,
+        start_error: str | None = None,
     ):
         self.vehicle_id = vehicle_id
+        self.progress = progress if progress is not None else WorkerProgress([PROGRESS_NAME])
+        """The merging thread beats here every loop and merges under working() (watchdog health)."""
+        self.start_error = start_error
+        """Why merging could not start (e.g. an ImportError inside coopd.merging), for status."""
         self.local_snapshot = local_snapshot
         self.received_maps = received_maps
         self.budget = budget
@@ -212,7 +233,7 @@ class Merger:
         if not self.enabled:
             return {"outcome": "failed", "detail": "merging is disabled in the configuration"}
         if not self.available:
-            return {"outcome": "failed", "detail": NOT_AVAILABLE}
+            return {"outcome": "failed", "detail": self.status()["state"]}
         ticket = self.request("merge-now", urgent=True)
         with self._cv:
             done = self._cv.wait_for(lambda: self._completed >= ticket or self._stop.is_set(), timeout_s)
@@ -234,12 +255,13 @@ class Merger:
         while not self._stop.is_set():
             with self._cv:
                 while not self._stop.is_set():
+                    self.progress.beat(PROGRESS_NAME)
                     now = time.monotonic()
                     pending = self._requested > self._completed
                     due = max(not_before, self._settled_at()) if pending else next_periodic
                     if self._urgent or now >= due or now >= next_periodic:
                         break
-                    self._cv.wait(max(0.0, min(due, next_periodic) - now))
+                    self._cv.wait(min(BEAT_PERIOD_S, max(0.0, min(due, next_periodic) - now)))
                 if self._stop.is_set():
                     return
                 ticket = self._requested
@@ -290,7 +312,8 @@ class Merger:
         cpu0 = time.thread_time()
         self.busy_since = t0
         try:
-            outcome, detail = self._merge()
+            with self.progress.working(PROGRESS_NAME):
+                outcome, detail = self._merge()
         except Exception as e:  # a merging bug must never take the daemon down
             log.exception("merge failed")
             outcome, detail = "failed", f"{type(e).__name__}: {e}"
@@ -590,13 +613,14 @@ class Merger:
         if not self.enabled:
             state = "disabled in the configuration"
         elif not self.available:
-            state = NOT_AVAILABLE
+            state = NOT_AVAILABLE if self.start_error is None else f"merging: off: {self.start_error}"
         else:
             state = "merging" if self.busy_since is not None else "idle"
         return {
             "available": self.available,
             "enabled": self.enabled,
             "state": state,
+            "start_error": self.start_error,
             **self.counters,
             "hinted": self.counters["hinted_own"] + self.counters["hinted_peer"],
             "cpu_s": round(self.cpu_s, 3),

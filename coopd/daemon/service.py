@@ -11,7 +11,7 @@
 | coopd-merging   | merging +10 | Merger.run: local + received -> global map                   |
 | coopd-control   | control 0   | ControlServer: coopctl                                       |
 | main            | -           | run(): checkpoints, memory ledger, sd_notify STATUS, health  |
-| coopd-watchdog  | -           | WATCHDOG=1 while the main loop and mapping thread are alive  |
+| coopd-watchdog  | -           | WATCHDOG=1 while main, mapping, merging and sharing progress |
 """
 
 import json
@@ -30,10 +30,10 @@ from coopd.camera import LatestSlot, RealSenseSource, SocketDepthSource, SocketS
 from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
-from coopd.daemon.control import BlobReply, CommandFailed, ControlServer
+from coopd.daemon.control import DEFAULT_MAX_REPLY_BUFFER, BlobReply, CommandFailed, ControlServer
 from coopd.daemon.merger import Merger, find_merge_all
 from coopd.daemon.notify import Notifier, WatchdogPinger
-from coopd.daemon.threads import ThreadPriorities
+from coopd.daemon.threads import ThreadPriorities, WorkerProgress
 from coopd.geometry import euler_to_matrix, matrix_to_quat
 from coopd.grid import OccupancyGrid
 from coopd.io.atomic import write_atomic
@@ -65,7 +65,9 @@ STATUS_PERIOD_S = 5.0
 LOG_PERIOD_S = 60.0
 PUBLISH_PERIOD_S = 1.0
 HEALTH_MAX_AGE_S = 3.0
-"""The main loop and the mapping thread must have looped within this time for WATCHDOG=1."""
+"""Every watched thread (main, mapping, merging, sharing) must have looped within this time for
+WATCHDOG=1, or be inside a long step (a merge, a publish) that used CPU within HEALTH_BUSY_QUIET_S."""
+HEALTH_BUSY_QUIET_S = 30.0
 LATENCY_WINDOW = 2000
 SNAPSHOT_PAD_CELLS = 4
 """Unknown cells kept around the known box of a snapshot (room for the merge's filters)."""
@@ -77,6 +79,51 @@ scan deliver within it), so the maps of a swarm's first exchange merge in one go
 SHUTDOWN_JOIN_S = 2.0
 FROM_BUILD = "from-build"
 """Daemon(merge_fn=FROM_BUILD): coopd.merging.merge_all if this build has it (None: not available)."""
+
+
+class RssWatch:
+    """Logs the process RSS crossing the memory budget: one WARNING when it goes over (with the
+    numbers and the ledger), one INFO when it is back under UNDER_FRACTION of the budget (so RSS
+    hovering at the budget is not a line per check); the state and the crossings for status."""
+
+    UNDER_FRACTION = 0.95
+
+    def __init__(self, budget: MemoryBudget):
+        self.budget = budget
+        self.crossings = 0
+        self.over_since: float | None = None
+        self.peak_over = 0
+
+    def check(self, rss: int) -> None:
+        """Called with a fresh RSS reading (main loop)."""
+        limit = self.budget.budget_bytes
+        if self.over_since is None and rss > limit:
+            self.over_since, self.crossings, self.peak_over = time.monotonic(), self.crossings + 1, rss
+            snap = self.budget.snapshot()
+            ledger = ", ".join(f"{k} {v / 2**20:.1f}" for k, v in snap["entries"].items()) or "nothing"
+            log.warning(
+                "memory: RSS %.0f MiB is over the budget of %.0f MiB (memory_mb) by %.0f MiB; baseline "
+                "%.0f MiB, grids reserved %.1f MiB (%s); crossing %d",
+                rss / 2**20, limit / 2**20, (rss - limit) / 2**20, snap["baseline_bytes"] / 2**20,
+                snap["reserved_bytes"] / 2**20, ledger, self.crossings,
+            )
+        elif self.over_since is not None:
+            self.peak_over = max(self.peak_over, rss)
+            if rss <= self.UNDER_FRACTION * limit:
+                log.info(
+                    "memory: RSS %.0f MiB back under the budget of %.0f MiB after %.1f s over "
+                    "(peak %.0f MiB)",
+                    rss / 2**20, limit / 2**20, time.monotonic() - self.over_since, self.peak_over / 2**20,
+                )
+                self.over_since = None
+
+    def status(self) -> dict:
+        since = self.over_since
+        return {
+            "over_budget": since is not None,
+            "over_budget_for_s": None if since is None else round(time.monotonic() - since, 1),
+            "over_budget_crossings": self.crossings,
+        }
 
 
 class StartupError(RuntimeError):
@@ -108,6 +155,12 @@ def local_grid_cap(config: Config, budget: MemoryBudget) -> int:
     """Cells the local grid may grow to: a quarter of the grid budget (the local map, its snapshot
     for sharing/checkpoints, the global map and merge scratch must all fit), within the config's cap."""
     return min(config.mapping.growth.max_cells, max(budget.grid_budget // 4, 1))
+
+
+def control_reply_buffer(budget: MemoryBudget) -> int:
+    """Bytes of control replies that may wait for slow readers: 1/8 of the room for grids, within
+    1..64 MiB (one reply alone may exceed it: a map the daemon holds anyway)."""
+    return min(DEFAULT_MAX_REPLY_BUFFER, max(1 << 20, budget.grid_budget // 8))
 
 
 def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig:
@@ -161,10 +214,12 @@ class Daemon:
         # The socket backend, not libsystemd's sd_notify: that one blocks on a full notify queue while
         # holding the GIL, which froze every thread of the daemon, mapping included.
         self.notifier = notifier if notifier is not None else Notifier("socket")
-        self.merge_fn = find_merge_all() if merge_fn is FROM_BUILD else merge_fn
+        found = find_merge_all() if merge_fn is FROM_BUILD else (merge_fn, None)
+        self.merge_fn, self.merge_start_error = found
         self.notifier.extend_timeout(120)
         self._warm_up()  # first: the kernels' memory then belongs to the budget's baseline
         self.budget = MemoryBudget.from_mb(config.daemon.memory_mb)
+        self.rss_watch = RssWatch(self.budget)
         self.priorities = ThreadPriorities()
         self.state_dir = Path(config.daemon.state_dir)
         self.store = CheckpointStore(self.state_dir, keep=config.daemon.checkpoint_keep)
@@ -175,6 +230,10 @@ class Daemon:
         self.associator = FrameAssociator(self.link, camera_mount(config), config.camera.pose_wait_s)
         self.mapper = self._make_mapper()
         self.latency_s: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        watched = ["main", "mapping", "merging"] + (["sharing"] if config.sharing.enabled else [])
+        self.progress = WorkerProgress(watched, HEALTH_MAX_AGE_S, HEALTH_BUSY_QUIET_S)
+        self._stalled: dict[str, str] = {}
+        self._health_lock = threading.Lock()
         self.frames_mapped = 0
         self.mapping_errors = 0
         self.sharing = (
@@ -205,6 +264,8 @@ class Daemon:
             defer_full_s=config.merging.defer_full_s,
             recheck_growth=config.merging.recheck_growth,
             confirm_before_fusing=config.merging.confirm_before_fusing,
+            progress=self.progress,
+            start_error=self.merge_start_error,
         )
         self.control = ControlServer(
             config.daemon.control_socket,
@@ -216,6 +277,8 @@ class Daemon:
             },
             max_clients=config.daemon.control_max_clients,
             timeout_s=config.daemon.control_timeout_s,
+            max_reply_buffer_bytes=control_reply_buffer(self.budget),
+            quick_commands=("status", "peers"),
         )
         self.control.on_thread_start = lambda: self.priorities.apply("control")
         self.watchdog = WatchdogPinger(self.notifier, self.healthy)
@@ -223,7 +286,6 @@ class Daemon:
         self._sharing_error: str | None = None
         self.stop_reason = ""
         self._threads: list[threading.Thread] = []
-        self._beats = {"main": time.monotonic(), "mapping": time.monotonic()}
         self._local_message: tuple[int, bytes] | None = None
         self._message_lock = threading.Lock()
         self._published_version = 0
@@ -245,7 +307,7 @@ class Daemon:
             max_payload_bytes=self.config.camera.max_payload_bytes,
             stall_timeout_s=self.config.camera.stall_timeout_s,
         )
-        return SocketDepthSource(cfg, self.slot)
+        return SocketDepthSource(cfg, self.slot, fc=self.link)  # FC reboots reset its time reference
 
     def _local_to_fc(self, local_s: float) -> float | None:
         est = self.link.clock.estimate()
@@ -392,8 +454,9 @@ class Daemon:
             room.cells[(5, 34), 5:35, 2:10] = 90
             try:
                 self.merge_fn(room, [room.copy()], None)
-            except Exception as e:  # the merging thread will report the same failure on real maps
-                log.warning("merging warm-up failed: %s: %s", type(e).__name__, e)
+            except Exception as e:  # merging stays on: the failure shows in status and in each merge
+                self.merge_start_error = f"warm-up merge failed: {type(e).__name__}: {e}"
+                log.error("merging: %s", self.merge_start_error, exc_info=True)
         log.info("kernels ready in %.1f s", time.monotonic() - t0)
 
     def _remove_stray_temp_files(self) -> None:
@@ -414,7 +477,8 @@ class Daemon:
         """The main loop: health beat, memory ledger, periodic checkpoint and STATUS, until stopped."""
         while not self._stop.is_set():
             now = time.monotonic()
-            self._beats["main"] = now
+            self.progress.beat("main")
+            self.healthy()  # logs a worker that stopped making progress, also without a watchdog
             self._account_memory()
             if now >= self._next_checkpoint:
                 self._next_checkpoint = now + self.config.daemon.checkpoint_period_s
@@ -456,7 +520,7 @@ class Daemon:
     def _mapping_loop(self) -> None:
         """Take the newest frame (older ones were replaced and counted), pose it, integrate it."""
         while not self._stop.is_set():
-            self._beats["mapping"] = time.monotonic()
+            self.progress.beat("mapping")
             frame = self.slot.take(timeout=0.2)
             if frame is None:
                 continue
@@ -487,18 +551,24 @@ class Daemon:
             self._sharing_error = str(e)
             started.set()
             return
-        self._restore_received()
+        with self.progress.working("sharing"):  # decoding many checkpoints takes a while
+            self._restore_received()
         started.set()
         while not self._stop.wait(PUBLISH_PERIOD_S):
+            self.progress.beat("sharing")
             version = self.mapper.version
             if version >= 1 and version > self._published_version:
-                v, message = self.local_message()
-                self.versions.ensure(v)
-                try:
-                    self.sharing.publish(message, v)
-                    self._published_version = v
-                except ValueError as e:
-                    log.error("publishing local map v%d refused: %s", v, e)
+                with self.progress.working("sharing"):  # encoding a big map takes a while
+                    self._publish_local()
+
+    def _publish_local(self) -> None:
+        v, message = self.local_message()
+        self.versions.ensure(v)
+        try:
+            self.sharing.publish(message, v)
+            self._published_version = v
+        except ValueError as e:
+            log.error("publishing local map v%d refused: %s", v, e)
 
     def _restore_received(self) -> None:
         for name in self.store.names():
@@ -565,7 +635,8 @@ class Daemon:
                     self._saved_versions[name] = m.version
 
     def _account_memory(self) -> None:
-        """Every grid in the ledger: local (cells), received (compressed bytes)."""
+        """Every grid in the ledger: local (cells), received (compressed bytes); RSS against the budget."""
+        self.rss_watch.check(self.budget.rss())
         self.budget.reserve("local", self.mapper.grid.size)
         held = set()
         for m in self._received_maps():
@@ -577,9 +648,21 @@ class Daemon:
 
     # -------------------------------------------------------------------------------- health
     def healthy(self) -> bool:
-        """True while the main loop and the mapping thread have looped recently."""
-        now = time.monotonic()
-        return all(now - self._beats[k] <= HEALTH_MAX_AGE_S for k in ("main", "mapping"))
+        """True while every watched thread makes progress (WorkerProgress); a thread that stops, and
+        one that starts again, is logged once."""
+        stalled = self.progress.stalled()
+        with self._health_lock:
+            before, self._stalled = self._stalled, stalled
+        for name in stalled.keys() - before.keys():
+            log.error("thread %s %s: not healthy, the systemd watchdog is no longer fed", name, stalled[name])
+        for name in before.keys() - stalled.keys():
+            log.info("thread %s makes progress again: healthy", name)
+        return not stalled
+
+    def stalled_threads(self) -> dict[str, str]:
+        """The watched threads not making progress at the last health check, with the reason."""
+        with self._health_lock:
+            return dict(self._stalled)
 
     def summary(self) -> str:
         return status_report.summary(self)

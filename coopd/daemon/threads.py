@@ -1,4 +1,5 @@
-"""Thread priorities: a nice value per role, applied to the calling native thread.
+"""Thread priorities (a nice value per role, applied to the calling native thread) and the
+progress of the worker threads that the watchdog's health check watches.
 
 Linux schedules threads individually, so setpriority(PRIO_PROCESS, tid) changes one thread
 (threads it starts afterwards inherit the value). Lowering nice below the current value needs
@@ -9,6 +10,8 @@ report says so. Requested and applied values are reported by `coopctl status`.
 import logging
 import os
 import threading
+import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 
 log = logging.getLogger("coopd.daemon")
@@ -95,3 +98,85 @@ class ThreadPriorities:
                 continue
             out.append(dict(asdict(prio), applied=current))
         return sorted(out, key=lambda d: (d["requested"], d["role"]))
+
+
+MIN_CPU_PROGRESS_S = 0.001
+"""CPU seconds a working thread must have used since the last mark to count as progressing (a
+thread blocked on a lock still uses a few microseconds on its way into the wait)."""
+
+
+class WorkerProgress:
+    """Whether each watched worker thread makes progress, for the systemd watchdog.
+
+    A worker calls beat(name) every time round its loop. A worker inside one long step (a merge,
+    encoding a big map) runs it under working(name): it then counts as progressing while its
+    thread's CPU time grows, so a long computation is not mistaken for a hang but a thread
+    blocked on a lock, a socket or a sleep is. A worker that neither looped within max_age_s nor,
+    while working, used CPU within busy_quiet_s is stalled.
+    """
+
+    def __init__(self, names, max_age_s: float = 3.0, busy_quiet_s: float = 30.0):
+        now = time.monotonic()
+        self.max_age_s, self.busy_quiet_s = max_age_s, busy_quiet_s
+        self._beats = dict.fromkeys(names, now)
+        self._cpu_clock: dict[str, int] = {}
+        self._busy: dict[str, list[float]] = {}  # name -> [step started, CPU seconds seen, when it grew]
+        self._lock = threading.Lock()
+
+    def watched(self) -> list[str]:
+        return list(self._beats)
+
+    def beat(self, name: str) -> None:
+        """Called by the worker itself each time round its loop (names not watched are ignored)."""
+        if name not in self._beats:
+            return
+        if name not in self._cpu_clock:
+            try:
+                self._cpu_clock[name] = time.pthread_getcpuclockid(threading.get_ident())
+            except (AttributeError, OSError):  # no per-thread CPU clocks here: beats only
+                self._cpu_clock[name] = -1
+        self._beats[name] = time.monotonic()
+
+    @contextmanager
+    def working(self, name: str):
+        """Wrap one long step of the worker (called by the worker itself)."""
+        self.beat(name)
+        now = time.monotonic()
+        with self._lock:
+            self._busy[name] = [now, self._cpu(name), now]
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._busy.pop(name, None)
+            self.beat(name)
+
+    def _cpu(self, name: str) -> float:
+        clock = self._cpu_clock.get(name, -1)
+        if clock == -1:
+            return -1.0
+        try:
+            return time.clock_gettime(clock)
+        except OSError:  # the thread has ended
+            return -1.0
+
+    def stalled(self) -> dict[str, str]:
+        """Workers not making progress, with the reason for the operator."""
+        now = time.monotonic()
+        out = {}
+        with self._lock:
+            for name, beat in self._beats.items():
+                age = now - beat
+                if age <= self.max_age_s:
+                    continue
+                busy = self._busy.get(name)
+                if busy is None:
+                    out[name] = f"has not looped for {age:.1f} s"
+                    continue
+                cpu = self._cpu(name)
+                if cpu - busy[1] >= MIN_CPU_PROGRESS_S:
+                    busy[1], busy[2] = cpu, now
+                quiet = now - busy[2]
+                if quiet > self.busy_quiet_s:
+                    out[name] = f"in one step for {now - busy[0]:.1f} s without using CPU for {quiet:.1f} s"
+        return out

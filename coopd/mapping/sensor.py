@@ -7,6 +7,10 @@ import numpy as np
 from ..geometry import matrix_to_quat, quat_multiply, quat_to_matrix
 
 MAX_PIXELS_PER_SIDE = 8192
+FOV_LIMITS_DEG = (10.0, 170.0)
+"""Field of view of a plausible depth camera, either axis (RealSense D435: 87 x 58 deg)."""
+DEPTH_SCALE_LIMITS = (1e-5, 0.1)
+"""Metres per z16 unit of a plausible depth camera (RealSense: 1e-4..1e-3)."""
 
 
 class FrameRejected(ValueError):
@@ -39,6 +43,25 @@ class Intrinsics:
             raise FrameRejected(f"principal point ({self.cx}, {self.cy}) far outside the image")
         if not (1e-6 <= self.depth_scale <= 1.0):
             raise FrameRejected(f"depth scale {self.depth_scale} m/unit outside 1e-6..1")
+
+    def implausible(self) -> str | None:
+        """Why no real depth camera has these intrinsics (None: plausible). Today's hard limits above
+        keep the arithmetic finite; these keep a misconfigured driver's frames out of the map: a
+        field of view outside FOV_LIMITS_DEG on either axis, the principal point outside the image,
+        or a depth scale outside DEPTH_SCALE_LIMITS (z16 then spans under 0.65 m or beyond 6.5 km)."""
+        if not (-0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5):
+            return (f"principal point ({self.cx:.6g}, {self.cy:.6g}) px outside the "
+                    f"{self.width}x{self.height} image")
+        axes = (("horizontal", self.width, self.fx, self.cx), ("vertical", self.height, self.fy, self.cy))
+        for axis, n, f, c in axes:
+            fov = float(np.degrees(np.arctan((c + 0.5) / f) + np.arctan((n - 0.5 - c) / f)))
+            if not FOV_LIMITS_DEG[0] <= fov <= FOV_LIMITS_DEG[1]:
+                return (f"{axis} field of view {fov:.3g} deg (focal length {f:.6g} px over {n} px) "
+                        f"outside {FOV_LIMITS_DEG[0]:g}..{FOV_LIMITS_DEG[1]:g} deg")
+        if not DEPTH_SCALE_LIMITS[0] <= self.depth_scale <= DEPTH_SCALE_LIMITS[1]:
+            return (f"depth scale {self.depth_scale:.6g} m/unit outside {DEPTH_SCALE_LIMITS[0]:g}.."
+                    f"{DEPTH_SCALE_LIMITS[1]:g} (z16 would span {65535 * self.depth_scale:.6g} m)")
+        return None
 
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float, depth_scale: float = 0.001) -> "Intrinsics":

@@ -360,6 +360,19 @@ class VehicleLink:
         est = self.clock.estimate()
         return None if est is None else est.fc_time(time.monotonic())
 
+    def fc_time_latest(self) -> float | None:
+        """An FC time that has surely passed: the later of the clock fit's prediction for now and the
+        newest pose's stamp (the fit lags while it learns the rate); None before either exists."""
+        now = self.fc_time_now()
+        latest = self.poses.latest()
+        if latest is None:
+            return now
+        return latest.t_fc if now is None else max(now, latest.t_fc)
+
+    def fc_epoch(self) -> int:
+        """Counts the FC's time-base restarts (reboots): FC-time stamps from before a change are void."""
+        return self.counters["fc_reboots"]
+
     def status(self) -> dict:
         """Snapshot for `coopctl status` and logs."""
         now = time.monotonic()

@@ -1,11 +1,16 @@
-"""The camera socket client against firmware_sim's camera publisher: exact frames, timing, restart."""
+"""The camera socket client against firmware_sim: exact frames, timing, driver restart, FC reboot."""
 
+import socket
 import time
 
 import numpy as np
 import pytest
+from fake_driver import FakeDriver, frame_bytes, header
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
+from coopd.mapping import Mapper, MapperConfig
+from coopd.mapping.association import FrameAssociator
+from coopd.vehicle import LinkConfig, VehicleLink
 from firmware_sim.camera import CameraConfig
 from firmware_sim.simulation import Simulation
 from firmware_sim.worlds import build_world
@@ -58,3 +63,68 @@ def _wait(pred, timeout):
     while time.monotonic() < deadline and not pred():
         time.sleep(0.02)
     return pred()
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_mapping_resumes_within_2_s_of_an_fc_reboot_while_the_camera_stays_connected(world, tmp_path):
+    """A camera driver stamps its frames in FC time and stays connected while the FC reboots (its
+    clock restarts at 0): the reboot seen on the MAVLink side resets the camera's time reference, so
+    frames of the new time base are posed and mapped again within 2 s of the FC coming back. One
+    frame stamped 1000 s in the future before the reboot is dropped and latches nothing."""
+    port = _free_udp_port()
+    fcs = [Simulation(world, 1, seed=3, speed=4.0, camera=None, mavlink_base_port=port)]
+    image = header(w=16, h=12, fx=10.0, fy=10.0, cx=7.5, cy=5.5)
+
+    def camera_driver(conn, index, stopping):
+        """15 Hz, stamped with the running FC's clock, for at most 60 s."""
+        for seq in range(900):
+            t_fc = fcs[-1].time + (1000.0 if seq == 30 else 0.0)  # one frame from the future
+            hdr = dict(image, seq=seq, t_us=max(1, int(t_fc * 1e6)))
+            conn.sendall(frame_bytes(hdr, np.full(16 * 12, 2000, "<u2").tobytes()))
+            if stopping.wait(1 / 15):
+                return
+
+    link = VehicleLink(LinkConfig(connection=f"udpin:127.0.0.1:{port}", link_timeout_s=1.0))
+    driver = FakeDriver(str(tmp_path / "cam.sock"), camera_driver)
+    src = SocketDepthSource(SocketSourceConfig(str(tmp_path / "cam.sock")), fc=link)
+    assoc, mapper = FrameAssociator(link), Mapper(MapperConfig())
+    mapped: list[tuple[float, float]] = []  # (wall time, FC time) of every frame integrated
+
+    def map_frames(seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            f = src.slot.take(timeout=0.1)
+            a = None if f is None else assoc.associate(f)
+            if a is not None:
+                mapper.integrate(a.depth, a.intrinsics, a.camera_pose, a.stamp)
+                mapped.append((time.monotonic(), a.stamp))
+
+    try:
+        link.start()
+        src.start()
+        fcs[0].start()
+        map_frames(5.0)  # 20 s of FC time
+        assert len(mapped) > 20 and mapped[-1][1] > 12.0, (src.status(), assoc.status())
+        assert src.counters["dropped_future_timestamp"] == 1  # and the frames after it were mapped
+        fcs[0].stop()  # the FC reboots: silence, then a new boot whose clock starts at 0
+        map_frames(1.0)
+        fcs.append(Simulation(world, 1, seed=4, speed=4.0, camera=None, mavlink_base_port=port))
+        rebooted = time.monotonic()
+        fcs[-1].start()
+        map_frames(3.0)
+        after = [(w - rebooted, t) for w, t in mapped if w > rebooted]
+        print(f"first frame mapped {after[0][0]:.2f} s after the FC came back" if after else "none mapped",
+              src.status()["counters"], assoc.status()["skipped"])
+        assert link.counters["fc_reboots"] == 1 and after, (src.status(), assoc.status())
+        assert after[0][0] < 2.0 and after[0][1] < 10.0 and len(after) >= 10
+    finally:
+        src.stop()
+        link.stop()
+        driver.close()
+        for fc in fcs:
+            fc.stop()

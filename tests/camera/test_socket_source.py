@@ -30,10 +30,10 @@ def sock_path(tmp_path):
 def make_source(sock_path):
     made = []
 
-    def make(**kw):
+    def make(fc=None, **kw):
         kw.setdefault("stall_timeout_s", 0.4)
         kw.setdefault("backoff_s", (0.02, 0.2))
-        src = SocketDepthSource(SocketSourceConfig(sock_path, **kw))
+        src = SocketDepthSource(SocketSourceConfig(sock_path, **kw), fc=fc)
         made.append(src)
         src.start()
         return src
@@ -227,5 +227,118 @@ def test_a_byte_trickling_driver_is_abandoned(sock_path, make_source):
         src = make_source(stall_timeout_s=0.3, frame_timeout_s=0.5)
         f = src.slot.take(timeout=3.0)
         assert f is not None and f.seq == 1 and src.counters["disconnect_slow_frame"] == 1
+    finally:
+        drv.close()
+
+
+class StubFcClock:
+    """The vehicle link as the camera client sees it: the FC's clock now and its reboot count."""
+
+    def __init__(self, now_s=None, epoch=0):
+        self.now_s, self.epoch = now_s, epoch
+
+    def fc_time_latest(self):
+        return self.now_s
+
+    def fc_epoch(self):
+        return self.epoch
+
+
+def test_a_frame_from_the_future_is_dropped_without_moving_the_reference(sock_path, make_source):
+    """One frame stamped far after the FC's clock must not make every later frame 'old'."""
+
+    def script(conn, index, stopping):
+        for seq, t in ((0, 1000), (1, 2000), (2, 10**12), (3, 3000), (4, 4000)):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=t)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(fc=StubFcClock(now_s=0.005))
+        assert wait_until(lambda: src.counters["frames"] == 4, 3.0), src.status()
+        assert src.counters["dropped_future_timestamp"] == 1
+        assert src.counters["dropped_timestamp_not_increasing"] == 0
+        f = src.slot.take()
+        assert f.seq == 4 and f.t_fc == pytest.approx(0.004)
+    finally:
+        drv.close()
+
+
+def test_an_fc_reboot_resets_the_time_reference_at_once(sock_path, make_source):
+    """After the FC rebooted, the driver's first frame in the new (small) FC time is mapped."""
+    fc = StubFcClock(now_s=20.0)
+
+    def script(conn, index, stopping):
+        for seq in range(3):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=(18 + seq) * 10**6)))
+        stopping.wait(0.3)
+        fc.now_s, fc.epoch = 0.6, 1  # the FC rebooted; the link saw it
+        conn.sendall(frame_bytes(header(seq=3, t_us=500_000)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(fc=fc)
+        assert wait_until(lambda: src.counters["frames"] == 4, 3.0), src.status()
+        assert src.counters["time_reference_resets_fc_reboot"] == 1
+        assert src.slot.take().t_fc == pytest.approx(0.5)
+    finally:
+        drv.close()
+
+
+def test_stamps_that_stay_behind_the_reference_become_the_new_reference(sock_path, make_source):
+    """Without an FC clock to judge by, one bad stamp costs at most relatch_after_s of frames."""
+
+    def script(conn, index, stopping):
+        conn.sendall(frame_bytes(header(seq=0, t_us=10**12)))  # latches the reference far ahead
+        for k in range(1, 40):  # then a good stream at 20 Hz, for at most 2 s
+            conn.sendall(frame_bytes(header(seq=k, t_us=10**6 + k * 50_000)))
+            if stopping.wait(0.05):
+                return
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(relatch_after_s=0.3)
+        assert wait_until(lambda: src.counters["frames"] >= 10, 3.0), src.status()
+        assert src.counters["time_reference_resets_stamps_went_back"] == 1
+        assert 3 <= src.counters["dropped_timestamp_not_increasing"] <= 10
+        assert src.slot.take().t_fc < 3.0
+    finally:
+        drv.close()
+
+
+ABSURD_BUT_WELL_FORMED = {  # inside the protocol's hard limits, yet no depth camera looks like this
+    "fov_178_deg": {"fx": 0.2},
+    "fov_0.04_deg": {"fx": 9e4, "fy": 9e4},
+    "principal_point_left_of_image": {"cx": -60.0},
+    "principal_point_below_image": {"cy": 90.0},
+    "scale_6.5_cm_range": {"scale": 1e-6},
+    "scale_59_km_range": {"scale": 0.9},
+}
+
+
+@pytest.mark.parametrize("case", sorted(ABSURD_BUT_WELL_FORMED))
+def test_absurd_intrinsics_are_dropped_counted_and_logged_without_losing_the_connection(
+    sock_path, make_source, case, caplog
+):
+    good = dict(w=64, h=48, fx=40.0, fy=40.0, cx=31.5, cy=23.5)
+    bad = dict(good, **ABSURD_BUT_WELL_FORMED[case])
+
+    def script(conn, index, stopping):
+        for seq, fields in enumerate((bad, good, bad, good)):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=1000 * (seq + 1), **fields)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    caplog.set_level("WARNING", logger="coopd.camera")
+    try:
+        src = make_source()
+        assert wait_until(lambda: src.counters["frames"] == 2, 3.0), src.status()
+        assert src.counters["dropped_implausible_intrinsics"] == 2 and src.counters["connects"] == 1
+        assert src.slot.take().seq == 3
+        lines = [r.getMessage() for r in caplog.records if "implausible intrinsics" in r.getMessage()]
+        assert len(lines) == 1 and "frame 0 dropped" in lines[0], lines  # the 1st, then the 10th ...
+        print(lines[0])
     finally:
         drv.close()

@@ -341,3 +341,137 @@ def test_garbled_replies_are_control_errors(sock_dir, reply):
     finally:
         t.join(3)
         listener.close()
+
+
+# ------------------------------------------------------------------------ slow readers of big replies
+BIG = 8 << 20
+
+
+@pytest.fixture
+def big_server(sock_dir):
+    """A factory: servers whose `big` command replies 8 MiB, each a fresh buffer (as an encoded
+    global map is); 4 slots, a reply must be read at 8 MiB/s at least."""
+    made = []
+
+    def make(timeout_s=5.0, buffer_mib=64):
+        handlers = dict(HANDLERS, big=lambda args: BlobReply({"n": BIG}, bytes(BIG)))
+        srv = ControlServer(os.path.join(sock_dir, f"c{len(made)}.sock"), handlers, max_clients=4,
+                            timeout_s=timeout_s, max_reply_buffer_bytes=buffer_mib << 20,
+                            min_reply_rate=8 << 20)
+        made.append(srv.start())
+        return srv
+
+    yield make
+    for srv in made:
+        srv.stop()
+
+
+def _ask_big(path) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.connect(path)
+    s.sendall(frame({"v": 1, "cmd": "big"}))
+    return s
+
+
+def test_a_slow_reader_of_a_big_reply_is_cut_at_a_deadline_that_progress_does_not_move(big_server):
+    """Reading 64 KiB every 50 ms (never idle for the 1 s timeout) would take 6.5 s for 8 MiB: the
+    reply's deadline (timeout + size / min_reply_rate = 2 s after the reply) ends it, counted."""
+    srv = big_server(timeout_s=1.0)
+    s = _ask_big(srv.path)
+    s.settimeout(1.0)
+    got, t0, closed = 0, time.monotonic(), False
+    try:
+        while time.monotonic() - t0 < 10.0:  # bounded: the reply alone would take 6.5 s at this pace
+            chunk = s.recv(64 << 10)
+            if not chunk:
+                closed = True
+                break
+            got += len(chunk)
+            time.sleep(0.05)
+    finally:
+        s.close()
+    elapsed = time.monotonic() - t0
+    print(f"slow reader cut after {elapsed:.2f} s having read {got} of {BIG + 30} bytes")
+    assert closed and got < BIG and elapsed < 4.0
+    assert srv.stats()["reply_timeouts"] == 1 and srv.stats()["reply_buffer_bytes"] == 0
+
+
+def test_status_is_answered_within_1_s_while_slow_readers_hold_every_slot(big_server):
+    """Every slot (4) held by a client that asked for a big reply and reads nothing (5 s timeout):
+    status from another client is answered within 1 s, the oldest unread reply cut to make room."""
+    srv = big_server()
+    stuck, times = [], []
+    try:
+        for _ in range(4):
+            stuck.append(_ask_big(srv.path))
+        assert wait_for(lambda: srv.stats()["served"] == 4, 3.0)
+        for _ in range(3):
+            times.append(ping_time(srv.path))
+    finally:
+        for s in stuck:
+            s.close()
+    stats = srv.stats()
+    print(f"status answered in {max(times) * 1e3:.0f} ms at most with every slot held; {stats}")
+    assert max(times) < 1.0, times
+    assert stats["evicted_replies"] >= 1
+
+
+def test_reply_bytes_queued_for_slow_readers_are_bounded_and_refusals_counted(big_server):
+    """Six clients ask for 8 MiB each and read nothing: with a 24 MiB reply buffer, replies beyond
+    it are refused "busy" (counted); the queued bytes and the allocations stay within the limit."""
+    import tracemalloc
+
+    srv = big_server(buffer_mib=24)
+    tracemalloc.start()
+    stuck, buffered, replies = [], [], []
+    try:
+        for _ in range(6):
+            stuck.append(_ask_big(srv.path))
+            assert wait_for(lambda: srv.stats()["served"] == len(stuck), 3.0)
+            buffered.append(srv.stats()["reply_buffer_bytes"])
+        _, peak = tracemalloc.get_traced_memory()
+        for s in stuck:
+            s.settimeout(2.0)
+            head = s.recv(4)
+            replies.append(json.loads(s.recv(struct.unpack(">I", head)[0])))
+    finally:
+        tracemalloc.stop()
+        for s in stuck:
+            s.close()
+    stats = srv.stats()
+    busy = [r for r in replies if r.get("code") == "busy"]
+    print(f"reply buffer at most {max(buffered)} B, peak allocation {peak >> 20} MiB, {len(busy)} busy")
+    assert max(buffered) <= stats["reply_buffer_limit"] == 24 << 20
+    assert peak < (24 << 20) + 2 * BIG  # the limit, plus the reply being built and then refused
+    assert stats["refused_busy"] == len(busy) >= 3 and "try again" in busy[0]["error"]
+
+
+def wait_for(predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return bool(predicate())
+
+
+def test_status_is_answered_while_slow_commands_hold_every_worker(sock_dir):
+    """Two merge-now-like commands (2 s each) hold both command workers: status, a quick command,
+    runs on its own worker and is answered at once."""
+    srv = ControlServer(os.path.join(sock_dir, "control.sock"), HANDLERS, max_clients=8, timeout_s=5.0,
+                        quick_commands={"status"})
+    srv.start()
+    slow = [threading.Thread(target=control.request, args=(srv.path, "slow", {"s": 2.0})) for _ in range(3)]
+    try:
+        for t in slow:
+            t.start()
+        time.sleep(0.2)
+        t0 = time.monotonic()
+        result, _ = control.request(srv.path, "status", timeout_s=5)
+        elapsed = time.monotonic() - t0
+        print(f"status answered in {elapsed * 1e3:.0f} ms while 3 slow commands ran")
+        assert result["state"] == "running" and elapsed < 1.0
+    finally:
+        for t in slow:
+            t.join(10)
+        srv.stop()

@@ -6,8 +6,11 @@ import json
 import os
 import shutil
 import socket
+import sys
 import threading
 import time
+import types
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -19,7 +22,7 @@ from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import CheckpointStore, VersionReserve
 from coopd.daemon.config import from_dict
 from coopd.daemon.main import main
-from coopd.daemon.merger import NOT_AVAILABLE, Merger
+from coopd.daemon.merger import NOT_AVAILABLE, Merger, find_merge_all
 from coopd.daemon.notify import Notifier
 from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, StartupError, save_map_frame
 from coopd.geometry import rigid, rotation_z
@@ -97,7 +100,8 @@ def test_commands_without_a_vehicle(wd, merging):
         assert status["mapping"]["state"].startswith("paused: odometry stale")
         assert status["merging"] == ("idle" if merging == "this build" else NOT_AVAILABLE)
         assert status["memory"]["budget_bytes"] == budget_mb << 20
-        assert status["memory"]["entries"]["local"] > 0
+        assert status["memory"]["entries"]["local"] > 0 and not status["memory"]["over_budget"]
+        assert d.camera.fc is d.link  # an FC reboot seen by the link resets the camera's time reference
         roles = {t["role"]: t for t in status["threads"]}
         assert set(roles) >= {"mavlink", "camera", "mapping", "merging", "control"}
         assert roles["merging"]["applied"] == 10
@@ -163,6 +167,147 @@ def test_sd_notify_ready_status_and_watchdog_only_while_mapping_lives(wd):
         d.shutdown()
         listener.close()
     assert listener.with_field("STOPPING=1")
+
+
+def _pings_after(listener, t: float) -> list[float]:
+    return [tp for tp, _ in listener.with_field("WATCHDOG=1") if tp > t]
+
+
+@pytest.mark.parametrize("worker", ["merging", "sharing"])
+def test_a_hung_merging_or_sharing_thread_stops_the_watchdog_and_is_logged(wd, worker, caplog):
+    """A merge that computes for 5 s keeps the pings going; a merge or a publish blocked on a lock
+    (no CPU) stops them once it used no CPU for busy_quiet_s, with one ERROR line naming the thread
+    and the thread shown in status; released, the pings come back."""
+    listener = NotifyListener(wd)
+    notifier = Notifier("socket", {"NOTIFY_SOCKET": listener.path, "WATCHDOG_USEC": "400000"})
+    _, share_port = port_block(3)
+    cfg = _config(wd)
+    if worker == "sharing":
+        sharing = replace(cfg.sharing, enabled=True, port=share_port, listen_host="127.0.0.1")
+        cfg = replace(cfg, sharing=sharing)
+    d = Daemon(cfg, notifier=notifier)
+    d.progress.busy_quiet_s = 1.0
+    release = threading.Event()
+    real_merge = d.merger._merge
+
+    def merge(mode=["spin"]):  # noqa: B006 (the test switches the mode)
+        if mode[0] == "spin":
+            t_end = time.monotonic() + 5.0  # a long merge: bounded arithmetic
+            while time.monotonic() < t_end:
+                sum(range(1000))
+            mode[0] = "block"
+            return real_merge()
+        release.wait(30)
+        return real_merge()
+
+    d.merger._merge = merge
+    caplog.set_level("INFO", logger="coopd.daemon")
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        assert wait_until(lambda: listener.with_field("READY=1"), 5)
+        if worker == "merging":
+            d.merger.request("test", urgent=True)
+            time.sleep(0.5)
+            assert d.merger.busy_since is not None
+            t_spin = time.monotonic()
+            time.sleep(4.0)  # computing past the 3 s loop window: still healthy
+            assert len(_pings_after(listener, t_spin)) >= 10 and d.healthy()
+            assert wait_until(lambda: d.merger.busy_since is None, 5)
+            d.merger.request("test", urgent=True)  # this one blocks
+        else:
+            d._message_lock.acquire()  # a publish that never gets the lock
+            d.mapper.version = 1
+        t_hang = time.monotonic()
+        time.sleep(4.5)  # 3 s without looping, 1 s of it without CPU, and the watchdog's interval
+        t_quiet = time.monotonic()
+        time.sleep(1.0)
+        assert not _pings_after(listener, t_quiet), d.progress.stalled()
+        last = max(t for t, _ in listener.with_field("WATCHDOG=1"))
+        print(f"{worker} hung: last WATCHDOG=1 {last - t_hang:.2f} s after the hang; {d.stalled_threads()}")
+        status, _ = control.request(d.config.daemon.control_socket, "status")
+        assert not status["watchdog"]["healthy"] and list(status["watchdog"]["stalled_threads"]) == [worker]
+        errors = [r.getMessage() for r in caplog.records
+                  if r.levelname == "ERROR" and worker in r.getMessage()]
+        assert len(errors) == 1 and "without using CPU" in errors[0], errors
+        if worker == "merging":
+            release.set()
+        else:
+            d._message_lock.release()
+        assert wait_until(lambda: _pings_after(listener, t_quiet + 1.0), 5)
+        assert any("makes progress again" in r.getMessage() for r in caplog.records)
+    finally:
+        release.set()
+        if worker == "sharing" and d._message_lock.locked():
+            d._message_lock.release()
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+        listener.close()
+
+
+def test_a_build_without_merging_is_a_warning_not_an_error(caplog, monkeypatch):
+    monkeypatch.setitem(sys.modules, "coopd.merging", None)  # the package is not installed
+    caplog.set_level("INFO", logger="coopd.daemon")
+    assert find_merge_all() == (None, None)
+    assert [r.levelname for r in caplog.records if NOT_AVAILABLE in r.getMessage()] == ["WARNING"]
+
+
+def test_an_import_error_inside_merging_is_an_error_line_and_shown_in_status(wd, caplog, monkeypatch):
+    """A broken coopd.merging (here: merge_all missing, as a half-installed build) turns merging
+    off with an ERROR line and the reason in status and merge-now, not just a state field."""
+    monkeypatch.setitem(sys.modules, "coopd.merging", types.ModuleType("coopd.merging"))
+    caplog.set_level("INFO", logger="coopd.daemon")
+    d = Daemon(_config(wd))
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert any("merging is off: importing coopd.merging failed: ImportError" in e for e in errors), errors
+    d.start()
+    try:
+        status, _ = control.request(d.config.daemon.control_socket, "status")
+        assert status["merging"].startswith("merging: off: importing coopd.merging failed: ImportError")
+        assert "merge_all" in status["merges"]["start_error"]
+        merge, _ = control.request(d.config.daemon.control_socket, "merge-now")
+        assert merge["outcome"] == "failed" and "ImportError" in merge["detail"]
+    finally:
+        d.shutdown()
+
+
+def test_rss_over_the_budget_is_logged_once_per_crossing_and_shown_in_status(wd, caplog):
+    """The process grows 160 MiB over a budget set 80 MiB above its RSS, stays there, shrinks back,
+    grows again: one WARNING with the numbers per crossing, one INFO per return, status says so."""
+    d = Daemon(_config(wd))
+    budget_mb = (d.budget.rss() >> 20) + 80  # above what the daemon (kernels loaded) holds now
+    d.budget.budget_bytes = budget_mb << 20
+    caplog.set_level("INFO", logger="coopd.daemon")
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+
+    def memory():
+        return control.request(d.config.daemon.control_socket, "status")[0]["memory"]
+
+    try:
+        assert not memory()["over_budget"]
+        for crossing in (1, 2):
+            ballast = np.ones(160 << 20, np.uint8)  # touched: resident
+            assert wait_until(lambda: memory()["over_budget"], 5)
+            time.sleep(1.0)  # five more checks while over: no more lines
+            m = memory()
+            assert m["over_budget_crossings"] == crossing and m["rss_over_budget"]
+            assert m["over_budget_for_s"] >= 1
+            del ballast
+            assert wait_until(lambda: not memory()["over_budget"], 5)
+        over = [r.getMessage() for r in caplog.records if "over the budget" in r.getMessage()]
+        back = [r.getMessage() for r in caplog.records if "back under the budget" in r.getMessage()]
+        print(over[0], back[0], sep="\n")
+        assert len(over) == 2 and len(back) == 2
+        assert f"over the budget of {budget_mb} MiB (memory_mb)" in over[0] and "crossing 2" in over[1]
+        assert all(r.levelname == "WARNING" for r in caplog.records if "over the budget" in r.getMessage())
+    finally:
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
 
 
 def test_a_notify_queue_nobody_reads_never_blocks_the_daemon(wd):

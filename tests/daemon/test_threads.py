@@ -1,12 +1,14 @@
-"""Thread priorities: per-thread nice applied, visible in /proc/self/task/<tid>/stat, reported."""
+"""Thread priorities: per-thread nice applied, visible in /proc/self/task/<tid>/stat, reported; the
+watchdog's view of worker progress."""
 
 import os
 import sys
 import threading
+import time
 
 import pytest
 
-from coopd.daemon.threads import ROLE_NICE, ThreadPriorities, read_nice
+from coopd.daemon.threads import ROLE_NICE, ThreadPriorities, WorkerProgress, read_nice
 
 
 def run_in_thread(fn):
@@ -90,3 +92,44 @@ def test_high_priority_without_privilege_is_reported_not_fatal():
 def test_unknown_role():
     with pytest.raises(ValueError, match="unknown thread role"):
         ThreadPriorities().apply("gpu")
+
+
+def test_worker_progress_tells_a_long_computation_from_a_blocked_thread():
+    """Looping workers are healthy; inside working(), one burning CPU stays healthy past the loop
+    window, one blocked on an event (no CPU) is stalled once busy_quiet_s passed; a stalled worker
+    that loops again is healthy again."""
+    progress = WorkerProgress(["spinner", "blocked"], max_age_s=0.3, busy_quiet_s=0.5)
+    release, done = threading.Event(), threading.Event()
+
+    def spinner():
+        with progress.working("spinner"):
+            t_end = time.monotonic() + 2.0  # bounded: 2 s of arithmetic
+            x = 0
+            while time.monotonic() < t_end:
+                x += 1
+        done.set()
+
+    def blocked():
+        with progress.working("blocked"):
+            release.wait(5)
+        progress.beat("blocked")
+
+    threads = [threading.Thread(target=f) for f in (spinner, blocked)]
+    for t in threads:
+        t.start()
+    try:
+        time.sleep(0.2)
+        assert progress.stalled() == {}
+        time.sleep(1.2)  # past both windows
+        stalled = progress.stalled()
+        assert set(stalled) == {"blocked"} and "without using CPU" in stalled["blocked"], stalled
+        release.set()
+        time.sleep(0.05)
+        assert "blocked" not in progress.stalled()
+        assert done.wait(3)
+        time.sleep(0.4)  # neither loops any more: both stalled, as a dead thread would be
+        assert set(progress.stalled()) == {"spinner", "blocked"}
+    finally:
+        release.set()
+        for t in threads:
+            t.join(5)

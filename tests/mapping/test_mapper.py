@@ -168,6 +168,24 @@ def test_absurd_intrinsics_are_rejected(kwargs):
         Intrinsics(**kwargs)
 
 
+def test_real_cameras_are_plausible_and_absurd_ones_say_why():
+    d435 = Intrinsics(640, 480, 383.0, 383.0, 319.5, 239.5, 0.001)  # 79.7 x 64.1 deg
+    assert d435.implausible() is None
+    assert Intrinsics.from_fov(848, 480, 87.0, 1e-4).implausible() is None
+    assert Intrinsics.from_fov(160, 120, 165.0).implausible() is None
+    for kwargs, words in (
+        (dict(fx=0.2), "horizontal field of view 180 deg"),
+        (dict(fy=1e5), "vertical field of view"),
+        (dict(cx=700.0), "principal point (700, 239.5) px outside the 640x480 image"),
+        (dict(cy=-1.0), "principal point"),
+        (dict(depth_scale=2e-6), "depth scale 2e-06 m/unit"),
+        (dict(depth_scale=0.5), "z16 would span 32767.5 m"),
+    ):
+        fields = dict(width=640, height=480, fx=383.0, fy=383.0, cx=319.5, cy=239.5, depth_scale=0.001)
+        problem = Intrinsics(**dict(fields, **kwargs)).implausible()
+        assert problem is not None and words in problem, (kwargs, problem)
+
+
 @pytest.mark.parametrize("position,quaternion", [
     ([np.nan, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]),
     ([0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 0.0]),
