@@ -33,15 +33,10 @@ def _at(f, x, y, z):
 
 
 @nb.njit(**_JIT)
-def _neighbour_mean(f, x, y, z):
-    return (_at(f, x - 1, y, z) + _at(f, x + 1, y, z) + _at(f, x, y - 1, z) + _at(f, x, y + 1, z)
-            + _at(f, x, y, z - 1) + _at(f, x, y, z + 1)) / 6.0
-
-
-@nb.njit(**_JIT)
 def relax(field, fixed_level, iterations, lo, hi, solver):
-    """In-place sweeps of Laplace's equation on the box lo..hi (exclusive hi); cells at or above
-    fixed_level stay. solver 0: Gauss-Seidel (in place), 1: Jacobi (from the previous sweep)."""
+    """In-place sweeps of Laplace's equation on the box lo..hi (exclusive hi), which must leave a
+    one-cell border of the field untouched (the caller pads); cells at or above fixed_level stay.
+    solver 0: Gauss-Seidel (in place), 1: Jacobi (from the previous sweep)."""
     prev = field.copy() if solver == 1 else field
     for _ in range(iterations):
         if solver == 1:
@@ -51,7 +46,8 @@ def relax(field, fixed_level, iterations, lo, hi, solver):
                 for z in range(lo[2], hi[2]):
                     if field[x, y, z] >= fixed_level:
                         continue
-                    field[x, y, z] = _neighbour_mean(prev, x, y, z)
+                    field[x, y, z] = (prev[x - 1, y, z] + prev[x + 1, y, z] + prev[x, y - 1, z]
+                                      + prev[x, y + 1, z] + prev[x, y, z - 1] + prev[x, y, z + 1]) / 6.0
 
 
 @nb.njit(**_JIT)
@@ -82,14 +78,18 @@ def euler_from_field(g, x, y, z, window):
 
 
 @nb.njit(**_JIT)
-def _orient_global(field, keypoints, fixed_level, iterations, solver, window):
+def _orient_global(img, keypoints, fixed_level, iterations, solver, window):
     n = keypoints.shape[0]
-    lo = np.zeros(3, dtype=np.int64)
-    hi = np.array(field.shape, dtype=np.int64)
+    mx, my, mz = img.shape
+    field = np.zeros((mx + 2, my + 2, mz + 2))  # outside the map reads 0
+    field[1:-1, 1:-1, 1:-1] = img
+    lo = np.ones(3, dtype=np.int64)
+    hi = np.array([mx + 1, my + 1, mz + 1], dtype=np.int64)
     relax(field, fixed_level, iterations, lo, hi, solver)
     out = np.empty((n, 3))
     for p in range(n):
-        a, b, c = euler_from_field(field, keypoints[p, 0], keypoints[p, 1], keypoints[p, 2], window)
+        x, y, z = keypoints[p, 0] + 1, keypoints[p, 1] + 1, keypoints[p, 2] + 1
+        a, b, c = euler_from_field(field, x, y, z, window)
         out[p, 0], out[p, 1], out[p, 2] = a, b, c
     return out
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+from scipy import ndimage
 
 from ..grid import OccupancyGrid
 from .params import MergeParams
@@ -35,73 +36,37 @@ def intensity(cells: np.ndarray) -> np.ndarray:
     return np.where(cells >= 0, cells.astype(np.float32) * np.float32(2.55), np.float32(0.0))
 
 
-@nb.njit(**_JIT)
-def _extreme_along_first_axis(src, dst, radius, take_max):
-    """dst[i] = max (or min) of src[i-radius .. i+radius] along axis 0 (clipped at the borders)."""
-    n = src.shape[0]
-    for i in range(n):
-        lo = max(0, i - radius)
-        hi = min(n - 1, i + radius)
-        for y in range(src.shape[1]):
-            for z in range(src.shape[2]):
-                v = src[lo, y, z]
-                for k in range(lo + 1, hi + 1):
-                    w = src[k, y, z]
-                    if (w > v) if take_max else (w < v):
-                        v = w
-                dst[i, y, z] = v
-
-
-@nb.njit(**_JIT)
-def _convolve_first_axis(src, dst, weights):
-    """dst = src convolved with symmetric weights along axis 0 (borders renormalised)."""
-    n = src.shape[0]
-    r = (weights.shape[0] - 1) // 2
-    for i in range(n):
-        lo = max(0, i - r)
-        hi = min(n - 1, i + r)
-        norm = 0.0
-        for k in range(lo, hi + 1):
-            norm += weights[k - i + r]
-        for y in range(src.shape[1]):
-            for z in range(src.shape[2]):
-                acc = 0.0
-                for k in range(lo, hi + 1):
-                    acc += weights[k - i + r] * src[k, y, z]
-                dst[i, y, z] = acc / norm
-
-
-def _separable(img: np.ndarray, kernel, *args) -> np.ndarray:
-    """Apply a first-axis kernel along x, y and z in turn."""
-    out = np.ascontiguousarray(img, dtype=np.float32)
-    for axis in range(3):
-        src = np.moveaxis(out, axis, 0)
-        dst = np.empty_like(src)
-        kernel(src, dst, *args)
-        out = np.ascontiguousarray(np.moveaxis(dst, 0, axis))
-    return out
-
-
 def dilate(img: np.ndarray, radius: int = 1, iterations: int = 1) -> np.ndarray:
-    """Grey dilation with a cube of half-size radius."""
+    """Grey dilation with a cube of half-size radius (windows clipped at the borders)."""
+    img = np.asarray(img, dtype=np.float32)
     for _ in range(iterations):
-        img = _separable(img, _extreme_along_first_axis, radius, True)
+        for axis in range(3):
+            img = ndimage.maximum_filter1d(img, 2 * radius + 1, axis=axis, mode="nearest")
     return img
 
 
 def erode(img: np.ndarray, radius: int = 1, iterations: int = 1) -> np.ndarray:
-    """Grey erosion with a cube of half-size radius."""
+    """Grey erosion with a cube of half-size radius (windows clipped at the borders)."""
+    img = np.asarray(img, dtype=np.float32)
     for _ in range(iterations):
-        img = _separable(img, _extreme_along_first_axis, radius, False)
+        for axis in range(3):
+            img = ndimage.minimum_filter1d(img, 2 * radius + 1, axis=axis, mode="nearest")
     return img
 
 
 def gaussian(img: np.ndarray, radius: int = 3, sigma: float = 1.0, iterations: int = 1) -> np.ndarray:
-    """Separable Gaussian smoothing truncated at radius cells."""
+    """Separable Gaussian smoothing truncated at radius cells; near the borders the weights inside
+    the image are renormalised (outside is no evidence, not zero intensity)."""
     x = np.arange(-radius, radius + 1, dtype=np.float64)
-    w = np.exp(-0.5 * (x / sigma) ** 2).astype(np.float32)
+    w = np.exp(-0.5 * (x / sigma) ** 2)
+    img = np.asarray(img, dtype=np.float32)
     for _ in range(iterations):
-        img = _separable(img, _convolve_first_axis, w)
+        for axis in range(3):
+            n = img.shape[axis]
+            shape = [1, 1, 1]
+            shape[axis] = n
+            norm = ndimage.correlate1d(np.ones(n), w, mode="constant").reshape(shape).astype(np.float32)
+            img = ndimage.correlate1d(img, w.astype(np.float32), axis=axis, mode="constant") / norm
     return img
 
 
