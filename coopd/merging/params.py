@@ -11,6 +11,8 @@ class MergeParams:
     despeckle_max_occupied: int = 3
     """An occupied cell with at most this many occupied neighbours (of 26) and more free than unknown
     ones is dropped to unknown (preprocess.despeckle); -1 switches the filter off."""
+    despeckle_passes: int = 3
+    """Passes of the filter on a noisy map: a speckle that lost its neighbours in one goes in the next."""
     despeckle_min_share: float = 0.05
     """...only when such cells are at least this share of the occupied cells (salt noise, not a few
     thin structures of a clean map)."""
@@ -148,8 +150,13 @@ class MergeParams:
 
 
 def thesis_params() -> MergeParams:
-    """Chapter 8 as written: 5-point RANSAC-homography, Kabsch, one hypothesis, no refinement."""
-    return MergeParams(fast_both_polarities=False)
+    """Chapter 8's stages (FAST 3D, steered BRIEF 3D, matches within CC_d = 20, RANSAC, Kabsch) with
+    the settings that make them merge, each measured by `scripts/bench thesis` (docs/merging.md,
+    "The thesis pipeline"): yaw-steered descriptors, keypoints of both polarities, each keypoint's 3
+    nearest matches, the 2-point yaw estimator with its consensus gate, 3 hypotheses for the runner-up
+    test, ICP and validation."""
+    return MergeParams(fast_both_polarities=True, match_best_k=3, ransac_model="yaw", ransac_iterations=3000,
+                       hypotheses=3, refine=True)
 
 
 def coopd_params() -> MergeParams:
