@@ -92,9 +92,11 @@ def test_bounded_run_reports_every_pair_and_stage_and_its_truth_checks(tmp_path)
                 assert abs(rotation_angle_deg(est[:3, :3].T @ truth[:3, :3]) - r["rot_err_deg"]) < 0.01
                 assert abs(np.linalg.norm(est[:3, 3] - truth[:3, 3]) - r["trans_err_m"]) < 0.002
                 assert abs(r["truth"]["yaw_deg"]) == 180.0 and 7.0 <= r["truth"]["distance_m"] <= 10.0
-        if name == "coopd":  # the default merges the small house both ways and its lossless copy
-            for pair in ("small_house:A<-B", "small_house:B<-A", "small_house:A:turn90:flip0"):
-                assert rows[pair]["success"], rows[pair]
+        # both variants merge every pair of the bounded set: the whole-building pairs turned 180
+        # degrees, the lossless 90-degree copies and those with 10 % of their cells flipped
+        failed = {p: (r["reason"], r["mean_displacement_m"]) for p, r in rows.items() if not r["success"]}
+        assert not failed, (name, failed)
+        if name == "coopd":
             assert all(r["keypoints"]["a"] is None and r["correspondences"] is None for r in rows.values())
         else:  # the feature variant: every stage timed, keypoints and correspondences counted
             for r in rows.values():
