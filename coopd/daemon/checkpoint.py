@@ -159,8 +159,10 @@ class CheckpointStore:
         return removed
 
     # ------------------------------------------------------------------------------------ loading
-    def load_latest(self, name: str = "local") -> Checkpoint | None:
-        """The newest valid checkpoint of `name` (invalid newer ones are set aside), or None."""
+    def load_latest(self, name: str = "local", max_cells: int | None = None) -> Checkpoint | None:
+        """The newest valid checkpoint of `name` (invalid newer ones are set aside), or None.
+        `max_cells`: a map with more cells is set aside unread (e.g. a received map too large to
+        merge within the memory budget must not come back after a restart and block merges)."""
         with self._lock:
             for seq, path in self.generations(name):
                 try:
@@ -168,6 +170,9 @@ class CheckpointStore:
                     info = peek(data)
                     if info.message_type != MSG_COOPD_MAP or info.crc32 is None:
                         raise WireError(f"message type {info.message_type} without CRC is not a checkpoint")
+                    if max_cells is not None and info.cells > max_cells:
+                        raise WireError(f"{info.cells} cells, more than the {max_cells} this daemon can "
+                                        f"merge within its memory budget")
                     grid, meta = decode_map(data, self.limits)
                 except (WireError, ValueError, MemoryError) as e:
                     self._set_aside(path, str(e))

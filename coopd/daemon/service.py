@@ -31,7 +31,7 @@ from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
 from coopd.daemon.control import BlobReply, CommandFailed, ControlServer
-from coopd.daemon.merger import Merger, find_merge_all
+from coopd.daemon.merger import Merger, find_merge_all, mergeable_cells
 from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.threads import ThreadPriorities
 from coopd.geometry import euler_to_matrix, matrix_to_quat
@@ -137,6 +137,7 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
         grace_period=s.grace_period_s,
         relay=s.relay,
         max_received_bytes=max(budget.grid_budget // 4, 1),
+        allowed_vehicles=frozenset(s.allowed_vehicles),
         transport=transport,
     )
 
@@ -183,6 +184,8 @@ class Daemon:
                 verify=wire_verifier(config.sharing.max_map_cells, config.sharing.max_map_bytes),
                 on_map=self._on_map_received,
                 on_result=lambda _vid, _version: self.merger.on_peer_result(),
+                budget=self.budget,
+                cell_cap=self.mergeable_cells,
             )
             if config.sharing.enabled
             else None
@@ -228,6 +231,8 @@ class Daemon:
         self._message_lock = threading.Lock()
         self._published_version = 0
         self._saved_versions: dict[str, int] = {"local": self.mapper.version}  # a resumed map is on disk
+        self._snapshot_cells = 0
+        """Cells of the last known-box snapshot of the local map (what a merge decodes of it)."""
         self._origin_saved = self.link.odometry.origin_enu is not None
         self._next_checkpoint = time.monotonic() + (config.daemon.checkpoint_period_s or float("inf"))
         self._next_status = 0.0
@@ -504,7 +509,7 @@ class Daemon:
         for name in self.store.names():
             if not name.startswith("peer-"):
                 continue
-            cp = self.store.load_latest(name)
+            cp = self.store.load_latest(name, max_cells=self.mergeable_cells())
             if cp is None:
                 continue
             data = encode_map(cp.grid, cp.meta)
@@ -537,7 +542,14 @@ class Daemon:
         version. The grid grows by whole steps on both sides and is mostly unknown (a 40 m corridor:
         32 M cells, 4 M of them known); only the known box is copied, under the mapping lock."""
         with self.mapper.lock:
-            return self.mapper.grid.shrunk(pad=SNAPSHOT_PAD_CELLS), self.mapper.version
+            grid, version = self.mapper.grid.shrunk(pad=SNAPSHOT_PAD_CELLS), self.mapper.version
+        self._snapshot_cells = grid.size
+        return grid, version
+
+    def mergeable_cells(self) -> int:
+        """The largest received map, in cells, this daemon could merge within its memory budget."""
+        return min(self.config.sharing.max_map_cells, mergeable_cells(self.budget.grid_budget,
+                                                                      self._snapshot_cells))
 
     def local_message(self) -> tuple[int, bytes]:
         """(version, encoded local map), encoded again only when the map changed."""

@@ -19,12 +19,17 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from . import discovery, mtp
-from .peers import MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
+from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
 log = logging.getLogger("coopd.sharing")
 
 DEFAULT_PORT = 7400
+DECODE_BYTES_PER_CELL = 3
+"""Memory a full decode of a received map takes per cell, charged to the memory budget while it
+runs: the cells (1 B) plus the largest intermediates (planes-zstd: class plane N/4, escape
+nibbles up to N/2, raw escapes up to N)."""
+DECODE_LEDGER = "sharing-decode"
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,8 @@ class SharingConfig:
     """Received maps of at most this many vehicles are held."""
     max_received_bytes: int = 1 << 30
     """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
+    allowed_vehicles: frozenset[int] = frozenset()
+    """If not empty: maps and merge results only of these vehicle ids are accepted."""
     transport: TransportSettings = field(default_factory=TransportSettings)
 
 
@@ -90,8 +97,16 @@ class SharingService:
 
     def __init__(self, config: SharingConfig, inspect: Callable = wire_inspect,
                  verify: Callable | None = None, on_map: Callable | None = None,
-                 on_result: Callable[[int, int], None] | None = None):
+                 on_result: Callable[[int, int], None] | None = None, budget=None,
+                 cell_cap: Callable[[], int] | None = None):
+        """`budget` (a daemon MemoryBudget, optional): receive buffers and decodes are charged to it.
+        `cell_cap` (optional): the largest received map, in cells, this vehicle can merge now; a
+        bigger one is refused at receive, before it is decoded or stored."""
         self.config = config
+        self._budget = budget
+        self._cell_cap = cell_cap
+        self._decoding = threading.Lock()
+        """One received map decodes at a time: its memory is charged to the budget while it runs."""
         self.vehicle_id = config.vehicle_id
         self._inspect = inspect
         self._verify = verify
@@ -105,7 +120,7 @@ class SharingService:
         """(vehicle id, version) of every stored map, for consumers that poll; oldest dropped if full."""
         self._targets = discovery.parse_targets(config.peers, config.peer_ports)
         self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
-                                 config.listen_host, config.port, self._wants)
+                                 config.listen_host, config.port, self._wants, ledger=budget)
         self._own: tuple[int, bytes] | None = None
         self._own_result: tuple[int, bytes] | None = None
         self._update = threading.Condition()
@@ -204,7 +219,9 @@ class SharingService:
     # ------------------------------------------------------------------ receiving
     def _wants(self, origin: int, version: int) -> int:
         """Answer a relay offer: send it (ACK_OK) unless we hold that version or newer (ACK_STALE)."""
-        if origin == self.vehicle_id or 0 < version <= self.received.version(origin):
+        allowed = self.config.allowed_vehicles
+        if origin == self.vehicle_id or origin not in VEHICLE_IDS or (allowed and origin not in allowed) \
+                or 0 < version <= self.received.version(origin):
             return mtp.ACK_STALE
         return mtp.ACK_OK
 
@@ -222,8 +239,20 @@ class SharingService:
         if len(data) - summary.size >= s.block_size:
             raise Rejected("size", f"message of {summary.size} bytes sent in {arrival.blocks} blocks "
                                    f"(more than it needs)")
+        if summary.vehicle_id not in VEHICLE_IDS:
+            raise Rejected("vehicle_id", f"vehicle id {summary.vehicle_id} is outside "
+                                         f"{VEHICLE_IDS.start}..{VEHICLE_IDS.stop - 1}")
+        allowed = self.config.allowed_vehicles
+        if allowed and summary.vehicle_id not in allowed:
+            raise Rejected("not_allowed", f"vehicle {summary.vehicle_id} is not in sharing.allowed_vehicles")
         if summary.cells > s.max_cells:
             raise Rejected("oversize", f"{summary.cells} cells, limit {s.max_cells}")
+        if summary.kind == "map" and self._cell_cap is not None:
+            cap = self._cell_cap()
+            if summary.cells > cap:
+                raise Rejected("oversize", f"map of vehicle {summary.vehicle_id} v{summary.version} has "
+                                           f"{summary.cells} cells; this vehicle can merge at most {cap} "
+                                           f"within its memory budget (refused before decoding)")
         via = arrival.peer_vehicle_id if arrival.peer_vehicle_id is not None else summary.vehicle_id
         if arrival.peer_vehicle_id is not None:
             self._forgive(arrival.address)
@@ -241,10 +270,7 @@ class SharingService:
         del data
         message = arrival.take(summary.size)
         if self._verify is not None:
-            try:
-                self._verify(message)
-            except (ValueError, MemoryError) as e:
-                raise Rejected("decode", f"map from vehicle {summary.vehicle_id}: {e}") from None
+            self._verify_within_budget(message, summary)
         try:
             stored = self.received.offer(summary, message, via)
         except StoreFull as e:
@@ -269,6 +295,21 @@ class SharingService:
             with self._update:
                 self._update.notify_all()
         return mtp.ACK_OK
+
+    def _verify_within_budget(self, message, summary: MessageSummary) -> None:
+        """Decode a received map once (verify), one at a time, its memory charged to the budget."""
+        need = DECODE_BYTES_PER_CELL * summary.cells
+        with self._decoding:
+            if self._budget is not None and not self._budget.add(DECODE_LEDGER, need):
+                raise Rejected("memory", f"decoding the map of vehicle {summary.vehicle_id} needs "
+                                         f"{need >> 20} MiB, more than the memory budget has free")
+            try:
+                self._verify(message)
+            except (ValueError, MemoryError) as e:
+                raise Rejected("decode", f"map from vehicle {summary.vehicle_id}: {e}") from None
+            finally:
+                if self._budget is not None:
+                    self._budget.add(DECODE_LEDGER, -need)
 
     def _accept_result(self, arrival: Arrival, summary: MessageSummary, via: int) -> int:
         """A merge-result message: only from the vehicle that computed it, decoded, kept if newer."""
@@ -384,11 +425,13 @@ class SharingService:
             "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
             "received_results": {r.vehicle_id: r.version for r in self.results.all()},
             "received_bytes_held": self.received.total_bytes(),
+            "evicted_maps": self.received.evicted,
             "open_connections": self._server.open_connections,
             "inflight_bytes": self._server.inflight_bytes,
             "receiving": self._server.receiving(),
             "connections_accepted": self._server.accepted,
-            "refused_busy": self._server.refused_busy, "scans": self.scans,
+            "refused_busy": self._server.refused_busy, "evicted_idle": self._server.evicted_idle,
+            "scans": self.scans,
         })
         return snap
 

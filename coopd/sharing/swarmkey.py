@@ -9,6 +9,7 @@ import struct
 
 CONTEXT = b"coopd-mtp/1 transfer"
 HELLO_CONTEXT = b"coopd-mtp/2 hello"
+PROOF_CONTEXT = b"coopd-mtp/3 proof"
 HELLO_TAG_SIZE = 16
 """HMAC-SHA256 truncated to 128 bits: it fits a hello in the smallest block (64 bytes)."""
 NONCE_SIZE = 16
@@ -68,6 +69,15 @@ def hello_tag(key: bytes, sender_nonce: bytes, server_nonce: bytes, vehicle_id: 
     hello cannot be replayed), the server's nonce and every field of its hello, truncated."""
     mac = hmac.new(key, HELLO_CONTEXT + sender_nonce + server_nonce
                    + struct.pack("<iQiB", vehicle_id, instance, block_size, version), hashlib.sha256)
+    return mac.digest()[:HELLO_TAG_SIZE]
+
+
+def proof_tag(key: bytes, server_nonce: bytes, sender_nonce: bytes, vehicle_id: int, instance: int,
+              block_size: int) -> bytes:
+    """A sender's proof of the key: HMAC-SHA256 over context, the server's nonce (fresh, so a
+    recorded proof cannot be replayed), the sender's nonce and its hello's fields, truncated."""
+    mac = hmac.new(key, PROOF_CONTEXT + server_nonce + sender_nonce
+                   + struct.pack("<iQi", vehicle_id, instance, block_size), hashlib.sha256)
     return mac.digest()[:HELLO_TAG_SIZE]
 
 
