@@ -39,6 +39,8 @@ from coopd.grid import OccupancyGrid
 from coopd.io.atomic import write_atomic
 from coopd.mapping import CameraMount, FrameRejected, Intrinsics, Mapper, Pose
 from coopd.mapping.association import FrameAssociator
+from coopd.sharing import versions as map_versions
+from coopd.sharing.mtp import ACK_VERSION
 from coopd.sharing.peers import MessageSummary
 from coopd.sharing.service import SharingConfig as ServiceSharingConfig
 from coopd.sharing.service import SharingService, wire_verifier
@@ -50,6 +52,7 @@ from coopd.sharing.wire import (
     decode_map,
     encode_map,
     encode_merge_result,
+    with_version,
 )
 from coopd.vehicle import LinkConfig, VehicleLink
 
@@ -64,6 +67,8 @@ MAIN_PERIOD_S = 0.2
 STATUS_PERIOD_S = 5.0
 LOG_PERIOD_S = 60.0
 PUBLISH_PERIOD_S = 1.0
+NEW_EPOCH_MIN_S = 5.0
+"""A peer refusing our map's version starts a new version epoch at most this often."""
 HEALTH_MAX_AGE_S = 3.0
 """The main loop and the mapping thread must have looped within this time for WATCHDOG=1."""
 LATENCY_WINDOW = 2000
@@ -170,6 +175,10 @@ class Daemon:
         self.state_dir = Path(config.daemon.state_dir)
         self.store = CheckpointStore(self.state_dir, keep=config.daemon.checkpoint_keep)
         self.versions = VersionReserve(self.state_dir)
+        self.epoch = self.versions.new_epoch()
+        """The version epoch of the maps we publish (docs/protocol.md, "Map versions")."""
+        self._epoch_at = time.monotonic()
+        self._own_refusal: tuple[int, int, int] | None = None
         self.link = VehicleLink(link_config(config))
         self.slot: LatestSlot = LatestSlot()
         self.camera = self._make_camera()
@@ -186,6 +195,7 @@ class Daemon:
                 on_result=lambda _vid, _version: self.merger.on_peer_result(),
                 budget=self.budget,
                 cell_cap=self.mergeable_cells,
+                on_own_refused=self._own_map_refused,
             )
             if config.sharing.enabled
             else None
@@ -495,15 +505,38 @@ class Daemon:
         self._restore_received()
         started.set()
         while not self._stop.wait(PUBLISH_PERIOD_S):
+            self._maybe_new_epoch()
             version = self.mapper.version
             if version >= 1 and version > self._published_version:
                 v, message = self.local_message()
                 self.versions.ensure(v)
+                wire_version = map_versions.compose(self.epoch, v)
                 try:
-                    self.sharing.publish(message, v)
+                    self.sharing.publish(with_version(message, wire_version), wire_version)
                     self._published_version = v
                 except ValueError as e:
-                    log.error("publishing local map v%d refused: %s", v, e)
+                    log.error("publishing local map v%d refused: %s", wire_version, e)
+
+    def _own_map_refused(self, peer_vid: int, version: int, status: int) -> None:
+        """A peer refused our map's version or holds a newer one of ours we never sent (sender thread)."""
+        self._own_refusal = (peer_vid, version, status)
+
+    def _maybe_new_epoch(self) -> None:
+        """After a peer refused our version (a forged newer one pins us there), publish the map again
+        under a new epoch: the clock's seconds, so it passes any version forged within the receivers'
+        clock-skew bound once that much time went by."""
+        refusal = self._own_refusal
+        if refusal is None or time.monotonic() - self._epoch_at < NEW_EPOCH_MIN_S \
+                or int(time.time()) <= self.epoch:  # epochs never run ahead of the clock
+            return
+        self._own_refusal = None
+        self.epoch = self.versions.new_epoch()
+        self._epoch_at = time.monotonic()
+        self._published_version = 0
+        peer, version, status = refusal
+        why = "refused the version of" if status == ACK_VERSION else "holds a version we never sent of"
+        log.warning("vehicle %d %s our map v%d: publishing it again in a new version epoch %d", peer, why,
+                    version, self.epoch)
 
     def _restore_received(self) -> None:
         for name in self.store.names():
@@ -511,6 +544,10 @@ class Daemon:
                 continue
             cp = self.store.load_latest(name, max_cells=self.mergeable_cells())
             if cp is None:
+                continue
+            why = map_versions.refusal(cp.meta.version, None)
+            if why is not None:
+                log.warning("received map %s not restored: %s", cp.path.name, why)
                 continue
             data = encode_map(cp.grid, cp.meta)
             summary = MessageSummary(cp.meta.vehicle_id, cp.meta.version, len(data), cp.grid.size)

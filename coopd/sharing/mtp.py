@@ -44,8 +44,10 @@ HELLO_FLAG_KEY = 0x01
 TAG_HMAC_SHA256 = 0x01
 """Stop frame byte 6: a 32-byte HMAC-SHA256 tag follows in bytes 7-38."""
 TAG_SIZE = 32
-ACK_OK, ACK_STALE, ACK_REJECTED = 0, 1, 2
-"""Ack status (byte 6 of an ack): stored; not newer than what the receiver holds; refused."""
+ACK_OK, ACK_STALE, ACK_REJECTED, ACK_VERSION = 0, 1, 2, 3
+"""Ack status (byte 6 of an ack): stored; not newer than what the receiver holds; refused; refused
+because its version is implausible (coopd.sharing.versions: the sender should start a new epoch).
+Senders older than protocol 3 read any status but 0 and 1 as refused."""
 GROW_MIN = 256 * 1024
 """First size of a transfer's receive buffer (or the announced size, if smaller): it then doubles as
 data arrives, so a start frame that announces much and sends little costs little."""

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from . import discovery, mtp
+from . import discovery, mtp, versions
 from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
@@ -56,6 +56,9 @@ class SharingConfig:
     """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
     allowed_vehicles: frozenset[int] = frozenset()
     """If not empty: maps and merge results only of these vehicle ids are accepted."""
+    max_epoch_ahead_s: float = versions.MAX_EPOCH_AHEAD_S
+    """A received version whose epoch (or a merge result whose µs version) is further in the future
+    than this is refused (clock skew allowed between vehicles)."""
     transport: TransportSettings = field(default_factory=TransportSettings)
 
 
@@ -98,11 +101,16 @@ class SharingService:
     def __init__(self, config: SharingConfig, inspect: Callable = wire_inspect,
                  verify: Callable | None = None, on_map: Callable | None = None,
                  on_result: Callable[[int, int], None] | None = None, budget=None,
-                 cell_cap: Callable[[], int] | None = None):
+                 cell_cap: Callable[[], int] | None = None,
+                 on_own_refused: Callable[[int, int, int], None] | None = None):
         """`budget` (a daemon MemoryBudget, optional): receive buffers and decodes are charged to it.
         `cell_cap` (optional): the largest received map, in cells, this vehicle can merge now; a
         bigger one is refused at receive, before it is decoded or stored."""
         self.config = config
+        self._on_own_refused = on_own_refused
+        """(peer vehicle, our version, ack status): a peer refused our own map's version (ACK_VERSION) or
+        holds a newer one we never sent (ACK_STALE): someone else's version of our map got there
+        first, and a new version epoch gets ours through again."""
         self._budget = budget
         self._cell_cap = cell_cap
         self._decoding = threading.Lock()
@@ -220,8 +228,11 @@ class SharingService:
     def _wants(self, origin: int, version: int) -> int:
         """Answer a relay offer: send it (ACK_OK) unless we hold that version or newer (ACK_STALE)."""
         allowed = self.config.allowed_vehicles
+        held = self.received.version(origin)
         if origin == self.vehicle_id or origin not in VEHICLE_IDS or (allowed and origin not in allowed) \
-                or 0 < version <= self.received.version(origin):
+                or 0 < version <= held \
+                or versions.refusal(version, held if held > 0 else None,
+                                    max_ahead_s=self.config.max_epoch_ahead_s) is not None:
             return mtp.ACK_STALE
         return mtp.ACK_OK
 
@@ -263,7 +274,12 @@ class SharingService:
             self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
                                 arrival.address)
             return mtp.ACK_STALE
-        if summary.version != 0 and summary.version <= self.received.version(summary.vehicle_id):
+        held = self.received.version(summary.vehicle_id)
+        why = versions.refusal(summary.version, held if held > 0 else None,
+                               max_ahead_s=self.config.max_epoch_ahead_s)
+        if why is not None:
+            raise Rejected("version", f"map of vehicle {summary.vehicle_id}: {why}")
+        if summary.version != 0 and summary.version <= held:
             self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
                                 arrival.address)
             return mtp.ACK_STALE
@@ -311,6 +327,14 @@ class SharingService:
                 if self._budget is not None:
                     self._budget.add(DECODE_LEDGER, -need)
 
+    def _own_refused(self, peer_vid: int, version: int, status: int) -> None:
+        if self._on_own_refused is None:
+            return
+        try:
+            self._on_own_refused(peer_vid, version, status)
+        except Exception:
+            log.exception("on_own_refused callback failed for vehicle %d v%d", peer_vid, version)
+
     def _accept_result(self, arrival: Arrival, summary: MessageSummary, via: int) -> int:
         """A merge-result message: only from the vehicle that computed it, decoded, kept if newer."""
         from . import wire
@@ -318,6 +342,9 @@ class SharingService:
         if summary.vehicle_id != via:
             raise Rejected("relayed_result", f"merge result of vehicle {summary.vehicle_id} sent by {via}")
         vid = summary.vehicle_id
+        if summary.version > (time.time() + self.config.max_epoch_ahead_s) * 1e6:
+            raise Rejected("version", f"merge result of vehicle {vid}: version {summary.version} µs is in "
+                                      f"the future")
         if vid == self.vehicle_id or summary.version <= self.results.version(vid):
             self.peers.received(via, summary.vehicle_id, summary.version, summary.size, arrival.seconds,
                                 arrival.address, kind="result")
@@ -495,7 +522,11 @@ class _Sender:
                     svc.peers.peer_has(self.vid, origin, version, redundant=status == mtp.ACK_STALE,
                                        kind=kind)
                     if status != mtp.ACK_STALE:
-                        svc.peers.failure("rejected_by_peer", self.vid)
+                        svc.peers.failure("version_refused" if status == mtp.ACK_VERSION else
+                                          "rejected_by_peer", self.vid)
+                    own_map = origin == svc.vehicle_id and kind == "map"
+                    if own_map and status in (mtp.ACK_STALE, mtp.ACK_VERSION):
+                        svc._own_refused(self.vid, version, status)
             with svc._update:
                 if not svc.pending_for(self.vid) and not svc._stop.is_set():
                     svc._update.wait(0.5)

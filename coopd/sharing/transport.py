@@ -517,9 +517,9 @@ class _Connection:
         until the server is done with it (a decode, a store), and is given back before the ack."""
         try:
             status = self._check_and_accept(t, seconds)
-        except Rejected:
+        except Rejected as e:
             self.server._budget.release(t.reserved)
-            self._ack(t.blocks, mtp.ACK_REJECTED)
+            self._ack(t.blocks, mtp.ACK_VERSION if e.cause == "version" else mtp.ACK_REJECTED)
             raise
         self.server._budget.release(t.reserved)
         self._ack(t.blocks, status)

@@ -423,3 +423,25 @@ def test_peers_results_stop_counting_once_every_map_is_merged():
     finally:
         m.stop()
         runner.join(5)
+
+
+def test_a_refused_map_version_starts_a_new_epoch_and_the_map_is_published_again(wd):
+    """A peer holding a forged newer version of our map refuses ours: the daemon publishes it again
+    in a new version epoch (from the clock, above every earlier one, also after a restart)."""
+    from coopd.daemon import service as daemon_service
+    from coopd.sharing.mtp import ACK_VERSION
+
+    d = Daemon(_config(wd))
+    first = d.epoch
+    assert VersionReserve(d.state_dir).epoch == first  # written: a restart starts above it
+    d._published_version = 12
+    d._epoch_at -= daemon_service.NEW_EPOCH_MIN_S
+    d.epoch -= 5  # as if started five seconds ago
+    d._own_map_refused(2, 1234, ACK_VERSION)
+    d._maybe_new_epoch()
+    assert d.epoch > first and d._published_version == 0 and VersionReserve(d.state_dir).epoch == d.epoch
+    assert d._own_refusal is None
+    again = Daemon(_config(wd))
+    assert again.epoch > d.epoch
+    d.mapper.close()
+    again.mapper.close()
