@@ -39,6 +39,7 @@ from coopd.grid import OccupancyGrid
 from coopd.io.atomic import write_atomic
 from coopd.mapping import CameraMount, FrameRejected, Intrinsics, Mapper, Pose
 from coopd.mapping.association import FrameAssociator
+from coopd.sharing import swarmkey
 from coopd.sharing import versions as map_versions
 from coopd.sharing.mtp import ACK_VERSION
 from coopd.sharing.peers import MessageSummary
@@ -115,17 +116,32 @@ def local_grid_cap(config: Config, budget: MemoryBudget) -> int:
     return min(config.mapping.growth.max_cells, max(budget.grid_budget // 4, 1))
 
 
+def swarm_key(s) -> bytes | None:
+    """The swarm key of the [sharing] table, read as `coopctl key check` reads it; StartupError if
+    there is none and the server was not opened explicitly (secure by default)."""
+    if s.swarm_key_file and s.open:
+        raise StartupError("sharing: swarm_key_file is set and open = true; choose one")
+    if not s.swarm_key_file:
+        if not s.open:
+            raise StartupError("sharing: no swarm key. Run `coopctl key generate --out "
+                               "/etc/coopd/swarm.key`, copy the file to every vehicle of the swarm and set "
+                               "sharing.swarm_key_file; or set sharing.open = true to accept maps from any "
+                               "host")
+        log.warning("sharing is OPEN (sharing.open = true, no swarm key): any host on the network can send "
+                    "maps under any vehicle id and read ours; set sharing.swarm_key_file to close it")
+        return None
+    try:
+        key = swarmkey.read_key_file(s.swarm_key_file)
+    except (OSError, ValueError) as e:
+        raise StartupError(f"sharing.swarm_key_file: {e}") from e
+    if key is None:
+        raise StartupError(f"sharing.swarm_key_file: {s.swarm_key_file} is empty")
+    return key
+
+
 def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig:
     s = config.sharing
-    key = None
-    if s.swarm_key_file:
-        try:
-            with open(s.swarm_key_file, "rb") as f:
-                key = f.read(4096).strip()
-        except OSError as e:
-            raise StartupError(f"sharing.swarm_key_file: cannot read {s.swarm_key_file}: {e}") from e
-        if len(key) < 16:
-            raise StartupError(f"sharing.swarm_key_file: {s.swarm_key_file} holds fewer than 16 bytes")
+    key = swarm_key(s)
     transport = TransportSettings(
         block_size=s.block_size,
         max_bytes=s.max_map_bytes,
