@@ -9,10 +9,12 @@ an HMAC tag in the stop frame's spare bytes, which the thesis leaves zero and ig
 
 The Reassembler is a pure state machine over received bytes: a start frame is refused unless the
 connection is authorized (keyed: the sender proved the key) and announces at most `max_bytes`;
-the transfer's buffer then grows with the data actually received, each step reserved first, and
-any inconsistency raises MtpError with a cause, after which the connection must be dropped.
+the transfer's buffer is an anonymous mapping of the announced size whose pages become memory
+only where data lands, charged step by step as data arrives, and any inconsistency raises
+MtpError with a cause, after which the connection must be dropped.
 """
 
+import mmap
 import struct
 from dataclasses import dataclass
 
@@ -48,9 +50,9 @@ ACK_OK, ACK_STALE, ACK_REJECTED, ACK_VERSION = 0, 1, 2, 3
 """Ack status (byte 6 of an ack): stored; not newer than what the receiver holds; refused; refused
 because its version is implausible (coopd.sharing.versions: the sender should start a new epoch).
 Senders older than protocol 3 read any status but 0 and 1 as refused."""
-GROW_MIN = 256 * 1024
-"""First size of a transfer's receive buffer (or the announced size, if smaller): it then doubles as
-data arrives, so a start frame that announces much and sends little costs little."""
+RESERVE_STEP = 256 * 1024
+"""A transfer's buffer is charged to the in-flight budget in steps of this many bytes, each step
+before data may land in it: what a transfer holds is what it sent, rounded up to one step."""
 
 
 class MtpError(ValueError):
@@ -98,8 +100,6 @@ class Transfer:
     data: memoryview
     blocks: int
     tag: bytes | None
-    buffer: bytearray | None = None
-    """The buffer `data` views: lets the receiver keep the message without copying it."""
     reserved: int = 0
     """Bytes of the in-flight budget the buffer still holds: the receiver releases them once it
     handled the transfer (the reassembler's release callback)."""
@@ -236,8 +236,10 @@ class Reassembler:
         self._filled = 0
         self._kind = -1
         self._announced = 0
-        self._data: bytearray | None = None
+        self._data: mmap.mmap | None = None
         self._reserved = 0
+        self._usable = 0
+        """Bytes of the transfer's buffer that may receive data (charged to the budget so far)."""
         self._received_blocks = 0
         self.frames_seen = 0
         self.saw_hello = False
@@ -266,20 +268,19 @@ class Reassembler:
             return memoryview(self._frame)[self._filled:HEAD.size]
         if self._state == self._REST:
             return memoryview(self._frame)[self._filled:]
-        if self._filled == len(self._data):
-            self._grow()
-        return memoryview(self._data)[self._filled:]
+        if self._filled == self._usable:
+            self._charge_step()
+        return memoryview(self._data)[self._filled:self._usable]
 
-    def _grow(self) -> None:
-        """Double the receive buffer (at most to the announced size), reserving the step first."""
-        have = len(self._data)
-        new = min(self._announced * self.block_size, max(2 * have, GROW_MIN))
+    def _charge_step(self) -> None:
+        """Let the next RESERVE_STEP bytes (at most up to the announced size) receive data, charged first."""
+        step = min(self._announced * self.block_size, self._usable + RESERVE_STEP) - self._usable
         if self._reserve is not None:
-            if not self._reserve(new - have):
-                self._fail("busy", f"no room for {new - have} more bytes of concurrent transfers "
-                                   f"(this one has {have} of {self._announced * self.block_size})")
-            self._reserved += new - have
-        self._data += bytearray(new - have)  # zero pages: resident only once data lands there
+            if not self._reserve(step):
+                self._fail("busy", f"no room for {step} more bytes of concurrent transfers (this one "
+                                   f"received {self._usable} of {self._announced * self.block_size})")
+            self._reserved += step
+        self._usable += step
 
     def commit(self, n: int) -> list:
         """Account for n bytes written into buffer(); return completed events."""
@@ -374,7 +375,8 @@ class Reassembler:
             rest = memoryview(self._frame)[HEAD.size:]
             if not _all_zero(rest):
                 self._fail("frame", "start frame padding is not zero; does the peer use another block size?")
-            self._data = bytearray()
+            self._data = mmap.mmap(-1, self._count * self.block_size)  # address space, not memory
+            self._usable = 0
             self._reserved = 0
             self._announced = self._count
             self._received_blocks = 0
@@ -400,7 +402,7 @@ class Reassembler:
         if not (self._count == self._announced == self._received_blocks):
             self._fail("count", f"start announced {self._announced} blocks, stop says {self._count}, "
                                 f"received {self._received_blocks}")
-        transfer = Transfer(memoryview(self._data), self._announced, tag, self._data, self._reserved)
+        transfer = Transfer(memoryview(self._data), self._announced, tag, self._reserved)
         self._data = None
         self._announced = 0
         self._reserved = 0  # handed on with the transfer: the receiver releases it when done

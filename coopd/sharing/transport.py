@@ -132,19 +132,14 @@ class Arrival:
     """From the connection hello; None for thesis-format peers (no hello)."""
     address: str
     seconds: float
-    buffer: bytearray | None = None
 
-    def take(self, size: int) -> bytes | bytearray:
-        """The first `size` bytes as an object of their own, without a copy when possible."""
-        buf = self.buffer
-        if buf is not None:
-            try:
-                self.data.release()
-                del buf[size:]  # shrinks in place; refused while other views of it are alive
-                return buf
-            except (BufferError, ValueError):
-                pass
-        return bytes(memoryview(buf if buf is not None else self.data)[:size])
+    def take(self, size: int) -> bytes:
+        """The first `size` bytes as an object of their own: the message itself when `data` views
+        exactly that (a decrypted transfer), else a copy out of the receive buffer."""
+        obj = self.data.obj
+        if isinstance(obj, bytes) and len(obj) == size == self.data.nbytes:
+            return obj
+        return bytes(self.data[:size])
 
 
 INFLIGHT_LEDGER = "sharing-inflight"
@@ -354,6 +349,8 @@ class _Connection:
         """The hello's vehicle id is trusted: no swarm key, or the sender proved the key."""
         self.nonce = swarmkey.new_nonce()
         self.seq = 0
+        self.cipher = None
+        """The connection's transfer AEAD once a keyed sender proved the key (transfers are sealed)."""
         self.idle_since: float | None = time.monotonic()
         """Since when the connection waits for the peer between frames (None while a frame or a
         transfer is under way or being handled): the longest idle one is evicted when slots run out."""
@@ -502,6 +499,7 @@ class _Connection:
             raise Rejected("auth", f"invalid proof of the swarm key from the peer claiming vehicle "
                                    f"{hello.vehicle_id}")
         self.reasm.authorized = True
+        self.cipher = swarmkey.transfer_cipher(s.swarm_key, self.nonce, hello.nonce)
         self._seen()
 
     def _seen(self) -> None:
@@ -532,7 +530,14 @@ class _Connection:
             expected = swarmkey.transfer_tag(s.swarm_key, self.nonce, self.hello.nonce, seq, t.blocks, t.data)
             if not swarmkey.tag_is_valid(expected, t.tag):
                 raise Rejected("auth", "missing or invalid HMAC tag" if t.tag else "transfer has no HMAC tag")
-        arrival = Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds, t.buffer)
+        if self.cipher is None:
+            arrival = Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds)
+        else:
+            try:
+                message = swarmkey.unseal(self.cipher, seq, t.data)
+            except ValueError as e:
+                raise Rejected("auth", str(e)) from None
+            arrival = Arrival(memoryview(message), t.blocks, self.vehicle_id, self.address, seconds)
         return self.server._accept(arrival)
 
     def _ack(self, blocks: int, status: int) -> None:
@@ -557,6 +562,8 @@ class PeerLink:
         self.nonce = swarmkey.new_nonce()
         self.peer: Hello | None = None
         self.seq = 0
+        self.cipher = None
+        """Transfers are sealed with it once we proved the key to a server of protocol 3 or later."""
 
     @classmethod
     def connect(cls, host: str, port: int, settings: TransportSettings, vehicle_id: int,
@@ -602,6 +609,7 @@ class PeerLink:
                 tag = swarmkey.proof_tag(s.swarm_key, peer.nonce, self.nonce, self.vehicle_id, self.instance,
                                          bs)
                 self.sock.sendall(mtp.proof_frame(self.vehicle_id, tag, bs))
+                self.cipher = swarmkey.transfer_cipher(s.swarm_key, peer.nonce, self.nonce)
         self.peer = peer  # set only once the handshake succeeded
         return peer
 
@@ -609,6 +617,8 @@ class PeerLink:
         """Send one message as an MTP transfer; return (ack status, seconds until the ack)."""
         s = self.s
         bs = s.block_size
+        if self.cipher is not None:
+            message = swarmkey.seal(self.cipher, self.seq, message)
         view = memoryview(message).cast("B")
         blocks = mtp.block_count(len(view), bs)
         pad = blocks * bs - len(view)

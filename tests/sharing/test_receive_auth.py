@@ -87,7 +87,7 @@ def test_a_wrong_key_peer_that_leaves_after_the_handshake_is_counted_and_logged(
 
 def test_announcements_without_data_hold_only_a_small_buffer(server):
     """20 hosts each announce a 64 MiB transfer, send 1 KiB and stall: the server holds what
-    arrived plus at most one first step (GROW_MIN) each, not 20 x 64 MiB."""
+    arrived rounded up to one step (RESERVE_STEP) each, not 20 x 64 MiB."""
     svc = server(max_bytes=64 << 20, max_inflight_bytes=512 << 20, transfer_base_s=30.0, read_timeout=10.0)
     socks = []
     try:
@@ -96,7 +96,7 @@ def test_announcements_without_data_hold_only_a_small_buffer(server):
             s.sendall(mtp.start_frame((64 << 20) // BS, BS) + bytes(1024))
             socks.append(s)
         assert wait_until(lambda: sum(r["received_bytes"] for r in svc.stats()["receiving"]) == 20 * 1024, 5)
-        assert svc._server.peak_inflight_bytes <= 20 * mtp.GROW_MIN
+        assert svc._server.peak_inflight_bytes <= 20 * mtp.RESERVE_STEP
         assert failures(svc).get("busy") is None
         good_peer_delivers(svc, 5, 1)
     finally:
