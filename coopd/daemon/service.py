@@ -159,6 +159,7 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
         relay=s.relay,
         max_received_bytes=max(budget.grid_budget // 4, 1),
         allowed_vehicles=frozenset(s.allowed_vehicles),
+        max_epoch_ahead_s=s.max_clock_skew_s,
         transport=transport,
     )
 
@@ -561,7 +562,8 @@ class Daemon:
             cp = self.store.load_latest(name, max_cells=self.mergeable_cells())
             if cp is None:
                 continue
-            why = map_versions.refusal(cp.meta.version, None)
+            why = map_versions.refusal(cp.meta.version, None,
+                                       max_ahead_s=self.config.sharing.max_clock_skew_s)
             if why is not None:
                 log.warning("received map %s not restored: %s", cp.path.name, why)
                 continue

@@ -39,3 +39,16 @@ def test_a_bad_key_file_refuses_to_start(tmp_path, content, error):
     path.write_text(content)
     with pytest.raises(StartupError, match=error):
         swarm_key(SharingConfig(swarm_key_file=str(path)))
+
+
+def test_the_sharing_settings_reach_the_receiver(tmp_path):
+    from coopd.daemon.budget import MemoryBudget
+    from coopd.daemon.config import from_dict
+    from coopd.daemon.service import sharing_config
+
+    path = swarm_key_file(tmp_path)
+    cfg = from_dict({"sharing": {"swarm_key_file": str(path), "max_clock_skew_s": 60.0,
+                                 "allowed_vehicles": [2, 3]}})
+    out = sharing_config(cfg, MemoryBudget(512 << 20, baseline_bytes=0))
+    assert out.max_epoch_ahead_s == 60.0 and out.allowed_vehicles == frozenset({2, 3})
+    assert out.transport.swarm_key == swarmkey.read_key_file(path)
