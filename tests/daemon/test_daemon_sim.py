@@ -224,7 +224,8 @@ def test_two_daemons_share_their_maps():
         daemons[0].start()
         s = daemons[0].wait_running()
         assert "2" in s["sharing"]["received_maps"], s["sharing"]
-        assert s["memory"]["entries"]["received:2"] > 0
+        assert s["memory"]["entries"].get("received:2", 0) > 0 or wait_until(  # accounted each main loop
+            lambda: daemons[0].status()["memory"]["entries"].get("received:2"), 3)
         # restarted with a memory budget only ~2 MiB above the interpreter's own RSS, vehicle 2's map
         # could never be merged: it is set aside at start (not restored to defer every merge) and
         # refused when vehicle 2 sends it again, before it is decoded
