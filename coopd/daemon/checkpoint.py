@@ -192,6 +192,20 @@ class CheckpointStore:
                 return Checkpoint(name, seq, path, grid, meta, len(data))
         return None
 
+    def remove(self, name: str) -> int:
+        """Delete every generation of `name` (a map no longer held); returns how many."""
+        removed = 0
+        with self._lock:
+            for _, path in self.generations(name):
+                try:
+                    path.unlink()
+                    removed += 1
+                except FileNotFoundError:
+                    pass
+                except OSError as e:
+                    log.warning("cannot remove checkpoint %s: %s", path, e)
+        return removed
+
     def load_all(self) -> dict[str, Checkpoint]:
         """The newest valid checkpoint of every name on disk."""
         out = {}

@@ -259,6 +259,8 @@ class Daemon:
         self._published_version = 0
         self._saved_versions: dict[str, int] = {"local": self.mapper.version}  # a resumed map is on disk
         self._snapshot_cells = 0
+        self._received_restored = False
+        """Received maps were restored from their checkpoints: those not held since may be removed."""
         """Cells of the last known-box snapshot of the local map (what a merge decodes of it)."""
         self._origin_saved = self.link.odometry.origin_enu is not None
         self._next_checkpoint = time.monotonic() + (config.daemon.checkpoint_period_s or float("inf"))
@@ -520,6 +522,7 @@ class Daemon:
             started.set()
             return
         self._restore_received()
+        self._received_restored = True
         started.set()
         while not self._stop.wait(PUBLISH_PERIOD_S):
             self._maybe_new_epoch()
@@ -625,11 +628,18 @@ class Daemon:
             version, message = self.local_message()
             if self.store.save_message("local", message) is not None:
                 self._saved_versions["local"] = version
+        held = set()
         for m in self._received_maps():
             name = f"peer-{m.vehicle_id}"
+            held.add(name)
             if m.version > self._saved_versions.get(name, -1):
                 if self.store.save_message(name, m.data) is not None:
                     self._saved_versions[name] = m.version
+        if self._received_restored:  # maps evicted from the store must not come back after a restart
+            for name in [n for n in self.store.names() if n.startswith("peer-") and n not in held]:
+                if self.store.remove(name):
+                    self._saved_versions.pop(name, None)
+                    log.info("checkpoint of %s removed: its map is no longer held", name)
 
     def _account_memory(self) -> None:
         """Every grid in the ledger: local (cells), received (compressed bytes)."""

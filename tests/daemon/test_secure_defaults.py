@@ -52,3 +52,4 @@ def test_the_sharing_settings_reach_the_receiver(tmp_path):
     out = sharing_config(cfg, MemoryBudget(512 << 20, baseline_bytes=0))
     assert out.max_epoch_ahead_s == 60.0 and out.allowed_vehicles == frozenset({2, 3})
     assert out.transport.swarm_key == swarmkey.read_key_file(path)
+
