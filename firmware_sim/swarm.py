@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from coopd.cli.key_commands import key_file_text
 from coopd.daemon import control
 from coopd.daemon.merger import in_global_map
 from coopd.geometry import invert
@@ -63,7 +64,10 @@ class SwarmSettings:
     merge_period_s: float = 5.0
     checkpoint_period_s: float = 30.0
     swarm_key: bytes | None = None
-    """Shared swarm key (written to a key file for every daemon); None: no key."""
+    """Shared swarm key (written to a key file for every daemon); None: a random one per swarm,
+    unless `open`."""
+    open: bool = False
+    """No swarm key: the daemons run with sharing.open = true (thesis-format interop)."""
     drone_keys: dict = field(default_factory=dict)
     """Per-drone key overrides {drone index: key bytes}, e.g. one drone with the wrong swarm key."""
     config: dict = field(default_factory=dict)
@@ -139,6 +143,8 @@ class Swarm:
         if not 1 <= settings.drones <= 32:
             raise ValueError("drones must be within 1..32")
         self.settings = settings
+        self._random_key = os.urandom(32)
+        """The swarm's key when settings.swarm_key is None (and not open): secure by default."""
         self.say = say
         self.own_workdir = workdir is None
         # Short paths: unix socket paths are limited to 107 bytes.
@@ -183,7 +189,7 @@ class Swarm:
         """Drone i's swarm key file (its override, else the shared key), or None without a key."""
         if i in self.settings.drone_keys:
             return self.workdir / f"swarm-d{i + 1}.key"
-        return None if self.settings.swarm_key is None else self.workdir / "swarm.key"
+        return None if self.settings.open else self.workdir / "swarm.key"
 
     def start(self, wait: bool = True) -> None:
         """Network, simulation (drones idle on the ground), then the daemons: the first alone, so
@@ -198,7 +204,8 @@ class Swarm:
         for i in range(s.drones):
             key_file = self.key_file(i)
             if key_file is not None and not key_file.exists():
-                key_file.write_bytes(s.drone_keys.get(i, s.swarm_key))
+                key = s.drone_keys.get(i, s.swarm_key) or self._random_key
+                key_file.write_text(key_file_text(key))
                 key_file.chmod(0o600)
         self.sim = Simulation(self.world, s.drones, seed=s.seed, speed=s.speed, noise=s.noise,
                               mavlink_base_port=s.mavlink_base,
@@ -230,6 +237,8 @@ class Swarm:
         }
         if self.key_file(i) is not None:
             sections["sharing"]["swarm_key_file"] = str(self.key_file(i))
+        else:
+            sections["sharing"]["open"] = True
         for name, table in s.config.items():
             sections.setdefault(name, {}).update(table)
         return sections

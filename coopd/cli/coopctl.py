@@ -8,9 +8,9 @@ daemon's status, dump-map, peers, merge-now), write the module and list it in GR
 import argparse
 import sys
 
-from . import daemon_commands, map_tools
+from . import daemon_commands, key_commands, map_tools
 
-GROUPS = (map_tools, daemon_commands)
+GROUPS = (map_tools, daemon_commands, key_commands)
 
 
 class CommandError(Exception):

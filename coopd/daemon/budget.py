@@ -109,6 +109,26 @@ class MemoryBudget:
             self._entries[name] = nbytes
             self.peak_reserved = max(self.peak_reserved, others + nbytes)
 
+    def add(self, name: str, delta: int) -> bool:
+        """Grow (delta > 0) or shrink `name`'s reservation by delta bytes; False (nothing changed) if
+        growing would pass the budget. For shared running totals (the map server's in-flight
+        buffers): counted in `refused` but not logged, as a hostile peer could trigger it at will
+        (the sharing component counts and logs its refusals per address)."""
+        delta = int(delta)
+        with self._lock:
+            held = self._entries.get(name, 0)
+            total = sum(self._entries.values())
+            if delta > 0 and total + delta > self.grid_budget:
+                self.refused += 1
+                return False
+            value = max(0, held + delta)
+            if value:
+                self._entries[name] = value
+            else:
+                self._entries.pop(name, None)
+            self.peak_reserved = max(self.peak_reserved, total - held + value)
+            return True
+
     def release(self, name: str) -> int:
         """Drop `name`'s reservation; returns the bytes it held."""
         with self._lock:

@@ -24,6 +24,7 @@ from pathlib import Path
 from coopd.grid import OccupancyGrid
 from coopd.io import atomic
 from coopd.io.cmap import read_cmap_bytes
+from coopd.sharing import versions
 from coopd.sharing.wire import (
     DEFAULT_LIMITS,
     MSG_COOPD_MAP,
@@ -159,8 +160,10 @@ class CheckpointStore:
         return removed
 
     # ------------------------------------------------------------------------------------ loading
-    def load_latest(self, name: str = "local") -> Checkpoint | None:
-        """The newest valid checkpoint of `name` (invalid newer ones are set aside), or None."""
+    def load_latest(self, name: str = "local", max_cells: int | None = None) -> Checkpoint | None:
+        """The newest valid checkpoint of `name` (invalid newer ones are set aside), or None.
+        `max_cells`: a map with more cells is set aside unread (e.g. a received map too large to
+        merge within the memory budget must not come back after a restart and block merges)."""
         with self._lock:
             for seq, path in self.generations(name):
                 try:
@@ -168,6 +171,9 @@ class CheckpointStore:
                     info = peek(data)
                     if info.message_type != MSG_COOPD_MAP or info.crc32 is None:
                         raise WireError(f"message type {info.message_type} without CRC is not a checkpoint")
+                    if max_cells is not None and info.cells > max_cells:
+                        raise WireError(f"{info.cells} cells, more than the {max_cells} this daemon can "
+                                        f"merge within its memory budget")
                     grid, meta = decode_map(data, self.limits)
                 except (WireError, ValueError, MemoryError) as e:
                     self._set_aside(path, str(e))
@@ -185,6 +191,20 @@ class CheckpointStore:
                 )
                 return Checkpoint(name, seq, path, grid, meta, len(data))
         return None
+
+    def remove(self, name: str) -> int:
+        """Delete every generation of `name` (a map no longer held); returns how many."""
+        removed = 0
+        with self._lock:
+            for _, path in self.generations(name):
+                try:
+                    path.unlink()
+                    removed += 1
+                except FileNotFoundError:
+                    pass
+                except OSError as e:
+                    log.warning("cannot remove checkpoint %s: %s", path, e)
+        return removed
 
     def load_all(self) -> dict[str, Checkpoint]:
         """The newest valid checkpoint of every name on disk."""
@@ -255,27 +275,49 @@ class VersionReserve:
     """Local map versions are reserved on disk before they are published, so a daemon killed -9
     (whose checkpoint may be older than what it already shared) resumes above every version a
     peer may hold: one (vehicle, version) never names two different maps. `reserved` is the
-    highest version that may have been published."""
+    highest version counter that may have been published. The file also keeps the version epoch
+    (coopd.sharing.versions): every start, and every new epoch, is above the last one written."""
 
     def __init__(self, directory: Path, step: int = VERSION_STEP):
         self.path = Path(directory) / VERSION_FILE
         self.step = step
         self.failed = 0
-        self.reserved = self._read()
+        self.reserved = self._read("reserved", 2**31)
+        self.epoch = self._read("epoch", 2**32)
+        """The last version epoch written (0: none yet); new_epoch() moves it on."""
 
-    def _read(self) -> int:
+    def _read(self, key: str, bound: int) -> int:
         try:
             with open(self.path, "rb") as f:
-                value = json.loads(f.read(256))["reserved"]
+                doc = json.loads(f.read(256))
+            value = doc.get(key, 0) if key == "epoch" else doc[key]
         except FileNotFoundError:
             return 0
-        except (OSError, ValueError, KeyError, TypeError) as e:
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
             log.error("%s unreadable (%s): map versions resume from the checkpoint", self.path, e)
             return 0
-        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < 2**31:
-            log.error("%s holds no valid version: map versions resume from the checkpoint", self.path)
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < bound:
+            log.error("%s holds no valid %s: map versions resume from the checkpoint", self.path, key)
             return 0
         return value
+
+    def new_epoch(self) -> int:
+        """A version epoch above every one this daemon used before (written first; if the write
+        fails it is still used, counted and logged: it is above the last one written)."""
+        epoch = versions.next_epoch(self.epoch)
+        self._write(self.reserved, epoch)
+        self.epoch = epoch
+        return epoch
+
+    def _write(self, reserved: int, epoch: int) -> bool:
+        try:
+            atomic.write_atomic(self.path, json.dumps({"reserved": reserved, "epoch": epoch}).encode())
+        except OSError as e:
+            self.failed += 1
+            if self.failed == 1 or self.failed % 100 == 0:
+                log.error("cannot reserve map versions in %s (%s, %d times)", self.path, e, self.failed)
+            return False
+        return True
 
     def ensure(self, version: int) -> bool:
         """Make sure `version` is within the reserve (one write per `step` versions); False if the
@@ -283,12 +325,7 @@ class VersionReserve:
         if version <= self.reserved:
             return True
         reserved = min(version + self.step, 2**31 - 1)
-        try:
-            atomic.write_atomic(self.path, json.dumps({"reserved": reserved}).encode())
-        except OSError as e:
-            self.failed += 1
-            if self.failed == 1 or self.failed % 100 == 0:
-                log.error("cannot reserve map versions in %s (%s, %d times)", self.path, e, self.failed)
+        if not self._write(reserved, self.epoch):
             return False
         self.reserved = reserved
         return True

@@ -230,11 +230,22 @@ class SharingConfig:
         "MTP block size in bytes, same on every vehicle", 4096, _between(64, 1 << 20, " B")
     )
     swarm_key_file: str = _key(
-        "file holding the shared swarm key (>= 16 bytes); empty: no key", "", _absolute_path(allow_empty=True)
+        "file holding the shared swarm key (coopctl key generate); empty: none (then open must be true)", "",
+        _absolute_path(allow_empty=True)
+    )
+    open: bool = _key(
+        "without a swarm key: accept maps from any host (thesis interop); false: a key is required", False
     )
     max_map_bytes: int = _key("largest received map message", 64 << 20, _between(1024, 1 << 30, " B"))
     max_map_cells: int = _key("largest received map, in cells", 100_000_000, _between(1, 400_000_000))
     relay: bool = _key("also forward maps received from others (multi-hop)", False)
+    max_clock_skew_s: float = _key(
+        "a received map version whose epoch is further ahead of our clock is refused", 300.0,
+        _between(1.0, 1e9, " s")
+    )
+    allowed_vehicles: tuple[int, ...] = _key(
+        "vehicle ids whose maps are accepted; empty: any id 1..255", (), _each(_between(1, 255))
+    )
 
     def __post_init__(self):
         if not self.peer_ports:

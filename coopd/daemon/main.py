@@ -31,6 +31,7 @@ OVERRIDES = (
     ("--checkpoint-period", "checkpoint_period_s", float, "daemon", "checkpoint_period_s",
      "seconds between checkpoints (0: only on stop)"),
     ("--log-level", "log_level", str, "daemon", "log_level", "debug, info, warning or error"),
+    ("--swarm-key-file", "swarm_key_file", str, "sharing", "swarm_key_file", "the swarm key file"),
 )
 
 
@@ -43,6 +44,8 @@ def parse_args(argv) -> argparse.Namespace:
     p.add_argument("--peer", dest="peers", action="append", default=None, metavar="HOST[:PORT]",
                    help="peer to scan, repeatable (replaces sharing.peers)")
     p.add_argument("--no-sharing", action="store_true", help="sharing.enabled = false")
+    p.add_argument("--open", action="store_true",
+                   help="sharing.open = true: no swarm key, accept maps from any host (thesis interop)")
     p.add_argument("--no-distributed", action="store_true",
                    help="merging.distributed = false (neither publish nor use peers' merge results)")
     p.add_argument("--check-config", action="store_true", help="validate the configuration and exit")
@@ -60,6 +63,8 @@ def build_config(args: argparse.Namespace):
         table["sharing"]["peers"] = args.peers
     if args.no_sharing:
         table["sharing"]["enabled"] = False
+    if args.open:
+        table["sharing"]["open"] = True
     if args.no_distributed:
         table["merging"]["distributed"] = False
     return from_dict(table)

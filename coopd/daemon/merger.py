@@ -69,6 +69,13 @@ received maps (1 B each) plus merge_all's own peak, measured with tracemalloc at
 input cell (global map copy, preprocessing, features) on small_house maps of 0.8-2.6 M cells."""
 
 
+def mergeable_cells(grid_budget: int, local_cells: int) -> int:
+    """The largest received map, in cells, whose merge scratch fits the grid budget next to a local
+    snapshot of `local_cells`: a bigger map could never be merged (every merge would be deferred),
+    so it is refused at receive and not restored from a checkpoint."""
+    return max(0, grid_budget // SCRATCH_BYTES_PER_CELL - local_cells)
+
+
 def find_merge_all() -> tuple[Callable | None, str | None]:
     """(coopd.merging.merge_all, None) when this build has it, else (None, why). A build without
     the coopd.merging package is a packaging choice (a WARNING); a failure inside it (a dependency

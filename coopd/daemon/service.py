@@ -31,7 +31,7 @@ from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
 from coopd.daemon.control import DEFAULT_MAX_REPLY_BUFFER, BlobReply, CommandFailed, ControlServer
-from coopd.daemon.merger import Merger, find_merge_all
+from coopd.daemon.merger import Merger, find_merge_all, mergeable_cells
 from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.threads import ThreadPriorities, WorkerProgress
 from coopd.geometry import euler_to_matrix, matrix_to_quat
@@ -39,6 +39,9 @@ from coopd.grid import OccupancyGrid
 from coopd.io.atomic import write_atomic
 from coopd.mapping import CameraMount, FrameRejected, Intrinsics, Mapper, Pose
 from coopd.mapping.association import FrameAssociator
+from coopd.sharing import swarmkey
+from coopd.sharing import versions as map_versions
+from coopd.sharing.mtp import ACK_VERSION
 from coopd.sharing.peers import MessageSummary
 from coopd.sharing.service import SharingConfig as ServiceSharingConfig
 from coopd.sharing.service import SharingService, wire_verifier
@@ -50,6 +53,7 @@ from coopd.sharing.wire import (
     decode_map,
     encode_map,
     encode_merge_result,
+    with_version,
 )
 from coopd.vehicle import LinkConfig, VehicleLink
 
@@ -64,6 +68,8 @@ MAIN_PERIOD_S = 0.2
 STATUS_PERIOD_S = 5.0
 LOG_PERIOD_S = 60.0
 PUBLISH_PERIOD_S = 1.0
+NEW_EPOCH_MIN_S = 5.0
+"""A peer refusing our map's version starts a new version epoch at most this often."""
 HEALTH_MAX_AGE_S = 3.0
 """Every watched thread (main, mapping, merging, sharing) must have looped within this time for
 WATCHDOG=1, or be inside a long step (a merge, a publish) that used CPU within HEALTH_BUSY_QUIET_S."""
@@ -163,17 +169,32 @@ def control_reply_buffer(budget: MemoryBudget) -> int:
     return min(DEFAULT_MAX_REPLY_BUFFER, max(1 << 20, budget.grid_budget // 8))
 
 
+def swarm_key(s) -> bytes | None:
+    """The swarm key of the [sharing] table, read as `coopctl key check` reads it; StartupError if
+    there is none and the server was not opened explicitly (secure by default)."""
+    if s.swarm_key_file and s.open:
+        raise StartupError("sharing: swarm_key_file is set and open = true; choose one")
+    if not s.swarm_key_file:
+        if not s.open:
+            raise StartupError("sharing: no swarm key. Run `coopctl key generate --out "
+                               "/etc/coopd/swarm.key`, copy the file to every vehicle of the swarm and set "
+                               "sharing.swarm_key_file; or set sharing.open = true to accept maps from any "
+                               "host")
+        log.warning("sharing is OPEN (sharing.open = true, no swarm key): any host on the network can send "
+                    "maps under any vehicle id and read ours; set sharing.swarm_key_file to close it")
+        return None
+    try:
+        key = swarmkey.read_key_file(s.swarm_key_file)
+    except (OSError, ValueError) as e:
+        raise StartupError(f"sharing.swarm_key_file: {e}") from e
+    if key is None:
+        raise StartupError(f"sharing.swarm_key_file: {s.swarm_key_file} is empty")
+    return key
+
+
 def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig:
     s = config.sharing
-    key = None
-    if s.swarm_key_file:
-        try:
-            with open(s.swarm_key_file, "rb") as f:
-                key = f.read(4096).strip()
-        except OSError as e:
-            raise StartupError(f"sharing.swarm_key_file: cannot read {s.swarm_key_file}: {e}") from e
-        if len(key) < 16:
-            raise StartupError(f"sharing.swarm_key_file: {s.swarm_key_file} holds fewer than 16 bytes")
+    key = swarm_key(s)
     transport = TransportSettings(
         block_size=s.block_size,
         max_bytes=s.max_map_bytes,
@@ -190,6 +211,8 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
         grace_period=s.grace_period_s,
         relay=s.relay,
         max_received_bytes=max(budget.grid_budget // 4, 1),
+        allowed_vehicles=frozenset(s.allowed_vehicles),
+        max_epoch_ahead_s=s.max_clock_skew_s,
         transport=transport,
     )
 
@@ -224,6 +247,10 @@ class Daemon:
         self.state_dir = Path(config.daemon.state_dir)
         self.store = CheckpointStore(self.state_dir, keep=config.daemon.checkpoint_keep)
         self.versions = VersionReserve(self.state_dir)
+        self.epoch = self.versions.new_epoch()
+        """The version epoch of the maps we publish (docs/protocol.md, "Map versions")."""
+        self._epoch_at = time.monotonic()
+        self._own_refusal: tuple[int, int, int] | None = None
         self.link = VehicleLink(link_config(config))
         self.slot: LatestSlot = LatestSlot()
         self.camera = self._make_camera()
@@ -242,6 +269,9 @@ class Daemon:
                 verify=wire_verifier(config.sharing.max_map_cells, config.sharing.max_map_bytes),
                 on_map=self._on_map_received,
                 on_result=lambda _vid, _version: self.merger.on_peer_result(),
+                budget=self.budget,
+                cell_cap=self.mergeable_cells,
+                on_own_refused=self._own_map_refused,
             )
             if config.sharing.enabled
             else None
@@ -290,6 +320,10 @@ class Daemon:
         self._message_lock = threading.Lock()
         self._published_version = 0
         self._saved_versions: dict[str, int] = {"local": self.mapper.version}  # a resumed map is on disk
+        self._snapshot_cells = 0
+        self._received_restored = False
+        """Received maps were restored from their checkpoints: those not held since may be removed."""
+        """Cells of the last known-box snapshot of the local map (what a merge decodes of it)."""
         self._origin_saved = self.link.odometry.origin_enu is not None
         self._next_checkpoint = time.monotonic() + (config.daemon.checkpoint_period_s or float("inf"))
         self._next_status = 0.0
@@ -553,9 +587,11 @@ class Daemon:
             return
         with self.progress.working("sharing"):  # decoding many checkpoints takes a while
             self._restore_received()
+        self._received_restored = True
         started.set()
         while not self._stop.wait(PUBLISH_PERIOD_S):
             self.progress.beat("sharing")
+            self._maybe_new_epoch()
             version = self.mapper.version
             if version >= 1 and version > self._published_version:
                 with self.progress.working("sharing"):  # encoding a big map takes a while
@@ -564,18 +600,45 @@ class Daemon:
     def _publish_local(self) -> None:
         v, message = self.local_message()
         self.versions.ensure(v)
+        wire_version = map_versions.compose(self.epoch, v)
         try:
-            self.sharing.publish(message, v)
+            self.sharing.publish(with_version(message, wire_version), wire_version)
             self._published_version = v
         except ValueError as e:
-            log.error("publishing local map v%d refused: %s", v, e)
+            log.error("publishing local map v%d refused: %s", wire_version, e)
+
+    def _own_map_refused(self, peer_vid: int, version: int, status: int) -> None:
+        """A peer refused our map's version or holds a newer one of ours we never sent (sender thread)."""
+        self._own_refusal = (peer_vid, version, status)
+
+    def _maybe_new_epoch(self) -> None:
+        """After a peer refused our version (a forged newer one pins us there), publish the map again
+        under a new epoch: the clock's seconds, so it passes any version forged within the receivers'
+        clock-skew bound once that much time went by."""
+        refusal = self._own_refusal
+        if refusal is None or time.monotonic() - self._epoch_at < NEW_EPOCH_MIN_S \
+                or int(time.time()) <= self.epoch:  # epochs never run ahead of the clock
+            return
+        self._own_refusal = None
+        self.epoch = self.versions.new_epoch()
+        self._epoch_at = time.monotonic()
+        self._published_version = 0
+        peer, version, status = refusal
+        why = "refused the version of" if status == ACK_VERSION else "holds a version we never sent of"
+        log.warning("vehicle %d %s our map v%d: publishing it again in a new version epoch %d", peer, why,
+                    version, self.epoch)
 
     def _restore_received(self) -> None:
         for name in self.store.names():
             if not name.startswith("peer-"):
                 continue
-            cp = self.store.load_latest(name)
+            cp = self.store.load_latest(name, max_cells=self.mergeable_cells())
             if cp is None:
+                continue
+            why = map_versions.refusal(cp.meta.version, None,
+                                       max_ahead_s=self.config.sharing.max_clock_skew_s)
+            if why is not None:
+                log.warning("received map %s not restored: %s", cp.path.name, why)
                 continue
             data = encode_map(cp.grid, cp.meta)
             summary = MessageSummary(cp.meta.vehicle_id, cp.meta.version, len(data), cp.grid.size)
@@ -607,7 +670,14 @@ class Daemon:
         version. The grid grows by whole steps on both sides and is mostly unknown (a 40 m corridor:
         32 M cells, 4 M of them known); only the known box is copied, under the mapping lock."""
         with self.mapper.lock:
-            return self.mapper.grid.shrunk(pad=SNAPSHOT_PAD_CELLS), self.mapper.version
+            grid, version = self.mapper.grid.shrunk(pad=SNAPSHOT_PAD_CELLS), self.mapper.version
+        self._snapshot_cells = grid.size
+        return grid, version
+
+    def mergeable_cells(self) -> int:
+        """The largest received map, in cells, this daemon could merge within its memory budget."""
+        return min(self.config.sharing.max_map_cells, mergeable_cells(self.budget.grid_budget,
+                                                                      self._snapshot_cells))
 
     def local_message(self) -> tuple[int, bytes]:
         """(version, encoded local map), encoded again only when the map changed."""
@@ -628,11 +698,18 @@ class Daemon:
             version, message = self.local_message()
             if self.store.save_message("local", message) is not None:
                 self._saved_versions["local"] = version
+        held = set()
         for m in self._received_maps():
             name = f"peer-{m.vehicle_id}"
+            held.add(name)
             if m.version > self._saved_versions.get(name, -1):
                 if self.store.save_message(name, m.data) is not None:
                     self._saved_versions[name] = m.version
+        if self._received_restored:  # maps evicted from the store must not come back after a restart
+            for name in [n for n in self.store.names() if n.startswith("peer-") and n not in held]:
+                if self.store.remove(name):
+                    self._saved_versions.pop(name, None)
+                    log.info("checkpoint of %s removed: its map is no longer held", name)
 
     def _account_memory(self) -> None:
         """Every grid in the ledger: local (cells), received (compressed bytes); RSS against the budget."""

@@ -3,27 +3,33 @@
 Every frame is exactly BS bytes. A transfer is a start frame (0x80, 0, int32 block count),
 the serialized message cut into BS-byte data blocks (the last zero-padded), and a stop frame
 (0x80, 1, int32 block count). coopd extends the thesis with frames of its own that a thesis
-sender never emits: a connection hello (0x80, 2), a transfer ack (0x80, 3) and a relay offer
-(0x80, 4); and it may put
+sender never emits: a connection hello (0x80, 2), a transfer ack (0x80, 3), a relay offer
+(0x80, 4) and a sender's proof of the swarm key (0x80, 5); and it may put
 an HMAC tag in the stop frame's spare bytes, which the thesis leaves zero and ignores.
 
-The Reassembler is a pure state machine over received bytes: it never allocates more than
-`max_bytes` for a transfer (checked against the start frame before allocating), and any
-inconsistency raises MtpError with a cause, after which the connection must be dropped.
+The Reassembler is a pure state machine over received bytes: a start frame is refused unless the
+connection is authorized (keyed: the sender proved the key) and announces at most `max_bytes`;
+the transfer's buffer is an anonymous mapping of the announced size whose pages become memory
+only where data lands, charged step by step as data arrives, and any inconsistency raises
+MtpError with a cause, after which the connection must be dropped.
 """
 
+import mmap
 import struct
 from dataclasses import dataclass
 
 MARK = 0x80
 """Byte 0 of every control frame (-128 as int8); never a cell value or a message type."""
-START, STOP, HELLO, ACK, OFFER = 0, 1, 2, 3, 4
+START, STOP, HELLO, ACK, OFFER, PROOF = 0, 1, 2, 3, 4, 5
 DEFAULT_BLOCK_SIZE = 4096
 MIN_BLOCK_SIZE = 64
 """Small enough for any sane link, large enough for the hello and a stop frame with a tag."""
 MAX_BLOCK_SIZE = 1 << 20
-PROTOCOL_VERSION = 2
-"""coopd's MTP extension version, carried in the hello (2: a keyed server signs its hello)."""
+PROTOCOL_VERSION = 3
+"""coopd's MTP extension version, carried in the hello (2: a keyed server signs its hello; 3: a
+keyed sender proves the key with a proof frame before anything else)."""
+PROOF_VERSION = 3
+"""The first protocol version whose keyed senders send a proof frame."""
 
 HEAD = struct.Struct("<BBi")
 """marker, frame type, int32 count: bytes 0-5 of every control frame."""
@@ -34,12 +40,19 @@ OFFER_BODY = struct.Struct("<Q")
 """after HEAD (whose count is the origin vehicle id): the map version offered."""
 HELLO_TAG = struct.Struct("<16s")
 """after HELLO_BODY (bytes 36-51): a keyed server's hello tag (swarmkey.hello_tag); zero otherwise."""
+PROOF_TAG = struct.Struct("<16s")
+"""after HEAD (whose count is the sender's vehicle id): the proof tag (swarmkey.proof_tag)."""
 HELLO_FLAG_KEY = 0x01
 TAG_HMAC_SHA256 = 0x01
 """Stop frame byte 6: a 32-byte HMAC-SHA256 tag follows in bytes 7-38."""
 TAG_SIZE = 32
-ACK_OK, ACK_STALE, ACK_REJECTED = 0, 1, 2
-"""Ack status (byte 6 of an ack): stored; not newer than what the receiver holds; refused."""
+ACK_OK, ACK_STALE, ACK_REJECTED, ACK_VERSION = 0, 1, 2, 3
+"""Ack status (byte 6 of an ack): stored; not newer than what the receiver holds; refused; refused
+because its version is implausible (coopd.sharing.versions: the sender should start a new epoch).
+Senders older than protocol 3 read any status but 0 and 1 as refused."""
+RESERVE_STEP = 256 * 1024
+"""A transfer's buffer is charged to the in-flight budget in steps of this many bytes, each step
+before data may land in it: what a transfer holds is what it sent, rounded up to one step."""
 
 
 class MtpError(ValueError):
@@ -73,14 +86,23 @@ class Offer:
 
 
 @dataclass(frozen=True)
+class Proof:
+    """A keyed sender's proof that it holds the swarm key, over both nonces (swarmkey.proof_tag)."""
+
+    vehicle_id: int
+    tag: bytes
+
+
+@dataclass(frozen=True)
 class Transfer:
     """One complete, count-checked transfer: the data blocks (message + zero padding) and tag."""
 
     data: memoryview
     blocks: int
     tag: bytes | None
-    buffer: bytearray | None = None
-    """The buffer `data` views: lets the receiver keep the message without copying it."""
+    reserved: int = 0
+    """Bytes of the in-flight budget the buffer still holds: the receiver releases them once it
+    handled the transfer (the reassembler's release callback)."""
 
 
 def check_block_size(block_size: int) -> int:
@@ -125,6 +147,11 @@ def hello_frame(hello: Hello) -> bytes:
 def ack_frame(blocks: int, status: int, block_size: int) -> bytes:
     """The receiver's verdict on the transfer of `blocks` blocks just received."""
     return _control(ACK, blocks, block_size, bytes([status]))
+
+
+def proof_frame(vehicle_id: int, tag: bytes, block_size: int) -> bytes:
+    """A keyed sender's proof of the swarm key, sent right after the server's hello."""
+    return _control(PROOF, vehicle_id, block_size, PROOF_TAG.pack(tag))
 
 
 def offer_frame(origin: int, version: int, block_size: int) -> bytes:
@@ -197,8 +224,10 @@ class Reassembler:
     _HEAD, _REST, _DATA = 0, 1, 2
 
     def __init__(self, block_size: int = DEFAULT_BLOCK_SIZE, max_bytes: int = 512 << 20,
-                 reserve=None, release=None):
+                 reserve=None, release=None, authorized: bool = True):
         self.block_size = check_block_size(block_size)
+        self.authorized = authorized
+        """Start and offer frames are accepted (a keyed receiver sets it once the sender proved the key)."""
         self.max_bytes = max_bytes
         self._reserve = reserve
         self._release = release
@@ -207,8 +236,10 @@ class Reassembler:
         self._filled = 0
         self._kind = -1
         self._announced = 0
-        self._data: bytearray | None = None
+        self._data: mmap.mmap | None = None
         self._reserved = 0
+        self._usable = 0
+        """Bytes of the transfer's buffer that may receive data (charged to the budget so far)."""
         self._received_blocks = 0
         self.frames_seen = 0
         self.saw_hello = False
@@ -229,7 +260,7 @@ class Reassembler:
 
     @property
     def received_bytes(self) -> int:
-        return self._received_blocks * self.block_size + (self._filled if self._state == self._DATA else 0)
+        return self._filled if self._state == self._DATA else self._received_blocks * self.block_size
 
     def buffer(self) -> memoryview:
         """Where the next received bytes go (never longer than what the current state needs)."""
@@ -237,8 +268,19 @@ class Reassembler:
             return memoryview(self._frame)[self._filled:HEAD.size]
         if self._state == self._REST:
             return memoryview(self._frame)[self._filled:]
-        end = self._announced * self.block_size
-        return memoryview(self._data)[self._filled:end]
+        if self._filled == self._usable:
+            self._charge_step()
+        return memoryview(self._data)[self._filled:self._usable]
+
+    def _charge_step(self) -> None:
+        """Let the next RESERVE_STEP bytes (at most up to the announced size) receive data, charged first."""
+        step = min(self._announced * self.block_size, self._usable + RESERVE_STEP) - self._usable
+        if self._reserve is not None:
+            if not self._reserve(step):
+                self._fail("busy", f"no room for {step} more bytes of concurrent transfers (this one "
+                                   f"received {self._usable} of {self._announced * self.block_size})")
+            self._reserved += step
+        self._usable += step
 
     def commit(self, n: int) -> list:
         """Account for n bytes written into buffer(); return completed events."""
@@ -265,6 +307,7 @@ class Reassembler:
             target = self.buffer()
             n = min(len(target), len(view))
             target[:n] = view[:n]
+            target.release()  # the buffer may grow on the next call
             view = view[n:]
             events += self.commit(n)
         return events
@@ -294,6 +337,9 @@ class Reassembler:
         if self._data is not None and kind != STOP:
             self._fail("count", f"frame type {kind} after {self._announced} data blocks; "
                                 f"expected the stop frame")
+        if kind in (START, OFFER) and not self.authorized:
+            self._fail("auth", f"{'start' if kind == START else 'offer'} frame before the sender proved "
+                               f"the swarm key")
         if kind == START:
             if count <= 0:
                 self._fail("frame", f"start frame announces {count} blocks")
@@ -314,6 +360,9 @@ class Reassembler:
         elif kind == OFFER:
             if not self.saw_hello:
                 self._fail("frame", "offer frame without a hello")
+        elif kind == PROOF:
+            if not self.saw_hello or self.authorized:
+                self._fail("frame", "proof frame without a hello or after the proof")
         else:
             self._fail("frame", f"unknown control frame type {kind}")
         self._kind, self._count = kind, count
@@ -326,11 +375,9 @@ class Reassembler:
             rest = memoryview(self._frame)[HEAD.size:]
             if not _all_zero(rest):
                 self._fail("frame", "start frame padding is not zero; does the peer use another block size?")
-            size = self._count * self.block_size
-            if self._reserve is not None and not self._reserve(size):
-                raise MtpError("busy", f"no room for {size} more bytes of concurrent transfers")
-            self._reserved = size if self._reserve is not None else 0
-            self._data = bytearray(size)
+            self._data = mmap.mmap(-1, self._count * self.block_size)  # address space, not memory
+            self._usable = 0
+            self._reserved = 0
             self._announced = self._count
             self._received_blocks = 0
             self._state = self._DATA
@@ -338,6 +385,11 @@ class Reassembler:
         if self._kind == HELLO:
             self.saw_hello = True
             return [parse_hello(self._frame)]
+        if self._kind == PROOF:
+            (tag,) = PROOF_TAG.unpack_from(self._frame, HEAD.size)
+            if not _all_zero(memoryview(self._frame)[HEAD.size + PROOF_TAG.size:]):
+                self._fail("frame", "proof frame padding is not zero")
+            return [Proof(self._count, bytes(tag))]
         if self._kind == OFFER:
             (version,) = OFFER_BODY.unpack_from(self._frame, HEAD.size)
             if not _all_zero(memoryview(self._frame)[HEAD.size + OFFER_BODY.size:]):
@@ -350,12 +402,10 @@ class Reassembler:
         if not (self._count == self._announced == self._received_blocks):
             self._fail("count", f"start announced {self._announced} blocks, stop says {self._count}, "
                                 f"received {self._received_blocks}")
-        transfer = Transfer(memoryview(self._data), self._announced, tag, self._data)
+        transfer = Transfer(memoryview(self._data), self._announced, tag, self._reserved)
         self._data = None
         self._announced = 0
-        if self._reserved and self._release is not None:
-            self._release(self._reserved)
-        self._reserved = 0
+        self._reserved = 0  # handed on with the transfer: the receiver releases it when done
         return [transfer]
 
     def _check_early_stop(self, n: int) -> None:

@@ -2,10 +2,17 @@
 the received-map store (newest version per vehicle, kept as serialized bytes) and the received
 merge-result store (newest result message per sender, decoded)."""
 
+import logging
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+
+log = logging.getLogger("coopd.sharing")
+
+VEHICLE_IDS = range(1, 256)
+"""Vehicle ids a swarm member can have (vehicle.id, the MAVLink system id): anything else in a
+hello or a received message is refused."""
 
 
 @dataclass(frozen=True)
@@ -223,6 +230,9 @@ class ReceivedStore:
     """Newest received map per vehicle; a newer version replaces, an older or equal one is refused.
 
     Version 0 means 'unversioned' (thesis type-0 messages carry no version): it always replaces.
+    When holding a new map would pass max_vehicles or max_bytes, the maps received longest ago
+    (vehicles not heard from since) are evicted to make room, so vehicles that left, or ids a
+    hostile host made up, cannot keep a new drone out.
     """
 
     def __init__(self, max_vehicles: int = 256, max_bytes: int = 1 << 30):
@@ -231,24 +241,41 @@ class ReceivedStore:
         self._bytes = 0
         self.max_vehicles = max_vehicles
         self.max_bytes = max_bytes
+        self.evicted = 0
         self.changed = threading.Condition(self._lock)
 
     def offer(self, summary: MessageSummary, data: bytes | bytearray, via: int | None = None) -> bool:
         """Store the message if it is newer than what we hold for its vehicle; True if stored.
-        StoreFull if holding it would pass max_vehicles or max_bytes (the memory budget)."""
+        Evicts the stalest other maps if needed to stay within max_vehicles and max_bytes; StoreFull
+        (nothing changed) only if the map alone is larger than max_bytes."""
+        vid = summary.vehicle_id
         with self._lock:
-            held = self._maps.get(summary.vehicle_id)
+            held = self._maps.get(vid)
             if held is not None and summary.version != 0 and summary.version <= held.version:
                 return False
-            if held is None and len(self._maps) >= self.max_vehicles:
-                raise StoreFull(f"already holding maps of {len(self._maps)} vehicles (max_vehicles)")
+            if len(data) > self.max_bytes:
+                raise StoreFull(f"a map of {len(data)} bytes is more than max_received_bytes "
+                                f"{self.max_bytes}")
+            stalest = sorted((m for v, m in self._maps.items() if v != vid), key=lambda m: m.received_at)
+            count = len(self._maps) + (held is None)
             total = self._bytes - (len(held.data) if held else 0) + len(data)
-            if total > self.max_bytes:
-                raise StoreFull(f"holding it would make {total} bytes of received maps "
-                                f"(max_received_bytes {self.max_bytes})")
+            victims = []
+            while count > self.max_vehicles or total > self.max_bytes:
+                if len(victims) == len(stalest):
+                    raise StoreFull(f"max_vehicles {self.max_vehicles} holds no map")
+                victim = stalest[len(victims)]
+                victims.append(victim)
+                count -= 1
+                total -= len(victim.data)
+            now = time.time()
+            for victim in victims:
+                del self._maps[victim.vehicle_id]
+                self.evicted += 1
+                log.info("received map of vehicle %d v%d evicted (received %.0f s ago) to hold vehicle %d's: "
+                         "%d vehicles, %d bytes at most", victim.vehicle_id, victim.version,
+                         now - victim.received_at, vid, self.max_vehicles, self.max_bytes)
             self._bytes = total
-            self._maps[summary.vehicle_id] = StoredMap(summary.vehicle_id, summary.version, data,
-                                                       time.time(), via)
+            self._maps[vid] = StoredMap(vid, summary.version, data, now, via)
             self.changed.notify_all()
             return True
 

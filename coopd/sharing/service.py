@@ -18,13 +18,18 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from . import discovery, mtp
-from .peers import MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
+from . import discovery, mtp, versions
+from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 
 log = logging.getLogger("coopd.sharing")
 
 DEFAULT_PORT = 7400
+DECODE_BYTES_PER_CELL = 3
+"""Memory a full decode of a received map takes per cell, charged to the memory budget while it
+runs: the cells (1 B) plus the largest intermediates (planes-zstd: class plane N/4, escape
+nibbles up to N/2, raw escapes up to N)."""
+DECODE_LEDGER = "sharing-decode"
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,11 @@ class SharingConfig:
     """Received maps of at most this many vehicles are held."""
     max_received_bytes: int = 1 << 30
     """Bytes of received (serialized, compressed) maps held at most: part of the memory budget."""
+    allowed_vehicles: frozenset[int] = frozenset()
+    """If not empty: maps and merge results only of these vehicle ids are accepted."""
+    max_epoch_ahead_s: float = versions.MAX_EPOCH_AHEAD_S
+    """A received version whose epoch (or a merge result whose µs version) is further in the future
+    than this is refused (clock skew allowed between vehicles)."""
     transport: TransportSettings = field(default_factory=TransportSettings)
 
 
@@ -90,8 +100,21 @@ class SharingService:
 
     def __init__(self, config: SharingConfig, inspect: Callable = wire_inspect,
                  verify: Callable | None = None, on_map: Callable | None = None,
-                 on_result: Callable[[int, int], None] | None = None):
+                 on_result: Callable[[int, int], None] | None = None, budget=None,
+                 cell_cap: Callable[[], int] | None = None,
+                 on_own_refused: Callable[[int, int, int], None] | None = None):
+        """`budget` (a daemon MemoryBudget, optional): receive buffers and decodes are charged to it.
+        `cell_cap` (optional): the largest received map, in cells, this vehicle can merge now; a
+        bigger one is refused at receive, before it is decoded or stored."""
         self.config = config
+        self._on_own_refused = on_own_refused
+        """(peer vehicle, our version, ack status): a peer refused our own map's version (ACK_VERSION) or
+        holds a newer one we never sent (ACK_STALE): someone else's version of our map got there
+        first, and a new version epoch gets ours through again."""
+        self._budget = budget
+        self._cell_cap = cell_cap
+        self._decoding = threading.Lock()
+        """One received map decodes at a time: its memory is charged to the budget while it runs."""
         self.vehicle_id = config.vehicle_id
         self._inspect = inspect
         self._verify = verify
@@ -105,7 +128,7 @@ class SharingService:
         """(vehicle id, version) of every stored map, for consumers that poll; oldest dropped if full."""
         self._targets = discovery.parse_targets(config.peers, config.peer_ports)
         self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
-                                 config.listen_host, config.port, self._wants)
+                                 config.listen_host, config.port, self._wants, ledger=budget)
         self._own: tuple[int, bytes] | None = None
         self._own_result: tuple[int, bytes] | None = None
         self._update = threading.Condition()
@@ -204,7 +227,12 @@ class SharingService:
     # ------------------------------------------------------------------ receiving
     def _wants(self, origin: int, version: int) -> int:
         """Answer a relay offer: send it (ACK_OK) unless we hold that version or newer (ACK_STALE)."""
-        if origin == self.vehicle_id or 0 < version <= self.received.version(origin):
+        allowed = self.config.allowed_vehicles
+        held = self.received.version(origin)
+        if origin == self.vehicle_id or origin not in VEHICLE_IDS or (allowed and origin not in allowed) \
+                or 0 < version <= held \
+                or versions.refusal(version, held if held > 0 else None,
+                                    max_ahead_s=self.config.max_epoch_ahead_s) is not None:
             return mtp.ACK_STALE
         return mtp.ACK_OK
 
@@ -222,8 +250,20 @@ class SharingService:
         if len(data) - summary.size >= s.block_size:
             raise Rejected("size", f"message of {summary.size} bytes sent in {arrival.blocks} blocks "
                                    f"(more than it needs)")
+        if summary.vehicle_id not in VEHICLE_IDS:
+            raise Rejected("vehicle_id", f"vehicle id {summary.vehicle_id} is outside "
+                                         f"{VEHICLE_IDS.start}..{VEHICLE_IDS.stop - 1}")
+        allowed = self.config.allowed_vehicles
+        if allowed and summary.vehicle_id not in allowed:
+            raise Rejected("not_allowed", f"vehicle {summary.vehicle_id} is not in sharing.allowed_vehicles")
         if summary.cells > s.max_cells:
             raise Rejected("oversize", f"{summary.cells} cells, limit {s.max_cells}")
+        if summary.kind == "map" and self._cell_cap is not None:
+            cap = self._cell_cap()
+            if summary.cells > cap:
+                raise Rejected("oversize", f"map of vehicle {summary.vehicle_id} v{summary.version} has "
+                                           f"{summary.cells} cells; this vehicle can merge at most {cap} "
+                                           f"within its memory budget (refused before decoding)")
         via = arrival.peer_vehicle_id if arrival.peer_vehicle_id is not None else summary.vehicle_id
         if arrival.peer_vehicle_id is not None:
             self._forgive(arrival.address)
@@ -234,17 +274,19 @@ class SharingService:
             self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
                                 arrival.address)
             return mtp.ACK_STALE
-        if summary.version != 0 and summary.version <= self.received.version(summary.vehicle_id):
+        held = self.received.version(summary.vehicle_id)
+        why = versions.refusal(summary.version, held if held > 0 else None,
+                               max_ahead_s=self.config.max_epoch_ahead_s)
+        if why is not None:
+            raise Rejected("version", f"map of vehicle {summary.vehicle_id}: {why}")
+        if summary.version != 0 and summary.version <= held:
             self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
                                 arrival.address)
             return mtp.ACK_STALE
         del data
         message = arrival.take(summary.size)
         if self._verify is not None:
-            try:
-                self._verify(message)
-            except (ValueError, MemoryError) as e:
-                raise Rejected("decode", f"map from vehicle {summary.vehicle_id}: {e}") from None
+            self._verify_within_budget(message, summary)
         try:
             stored = self.received.offer(summary, message, via)
         except StoreFull as e:
@@ -270,6 +312,29 @@ class SharingService:
                 self._update.notify_all()
         return mtp.ACK_OK
 
+    def _verify_within_budget(self, message, summary: MessageSummary) -> None:
+        """Decode a received map once (verify), one at a time, its memory charged to the budget."""
+        need = DECODE_BYTES_PER_CELL * summary.cells
+        with self._decoding:
+            if self._budget is not None and not self._budget.add(DECODE_LEDGER, need):
+                raise Rejected("memory", f"decoding the map of vehicle {summary.vehicle_id} needs "
+                                         f"{need >> 20} MiB, more than the memory budget has free")
+            try:
+                self._verify(message)
+            except (ValueError, MemoryError) as e:
+                raise Rejected("decode", f"map from vehicle {summary.vehicle_id}: {e}") from None
+            finally:
+                if self._budget is not None:
+                    self._budget.add(DECODE_LEDGER, -need)
+
+    def _own_refused(self, peer_vid: int, version: int, status: int) -> None:
+        if self._on_own_refused is None:
+            return
+        try:
+            self._on_own_refused(peer_vid, version, status)
+        except Exception:
+            log.exception("on_own_refused callback failed for vehicle %d v%d", peer_vid, version)
+
     def _accept_result(self, arrival: Arrival, summary: MessageSummary, via: int) -> int:
         """A merge-result message: only from the vehicle that computed it, decoded, kept if newer."""
         from . import wire
@@ -277,6 +342,9 @@ class SharingService:
         if summary.vehicle_id != via:
             raise Rejected("relayed_result", f"merge result of vehicle {summary.vehicle_id} sent by {via}")
         vid = summary.vehicle_id
+        if summary.version > (time.time() + self.config.max_epoch_ahead_s) * 1e6:
+            raise Rejected("version", f"merge result of vehicle {vid}: version {summary.version} µs is in "
+                                      f"the future")
         if vid == self.vehicle_id or summary.version <= self.results.version(vid):
             self.peers.received(via, summary.vehicle_id, summary.version, summary.size, arrival.seconds,
                                 arrival.address, kind="result")
@@ -384,11 +452,13 @@ class SharingService:
             "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
             "received_results": {r.vehicle_id: r.version for r in self.results.all()},
             "received_bytes_held": self.received.total_bytes(),
+            "evicted_maps": self.received.evicted,
             "open_connections": self._server.open_connections,
             "inflight_bytes": self._server.inflight_bytes,
             "receiving": self._server.receiving(),
             "connections_accepted": self._server.accepted,
-            "refused_busy": self._server.refused_busy, "scans": self.scans,
+            "refused_busy": self._server.refused_busy, "evicted_idle": self._server.evicted_idle,
+            "scans": self.scans,
         })
         return snap
 
@@ -452,7 +522,11 @@ class _Sender:
                     svc.peers.peer_has(self.vid, origin, version, redundant=status == mtp.ACK_STALE,
                                        kind=kind)
                     if status != mtp.ACK_STALE:
-                        svc.peers.failure("rejected_by_peer", self.vid)
+                        svc.peers.failure("version_refused" if status == mtp.ACK_VERSION else
+                                          "rejected_by_peer", self.vid)
+                    own_map = origin == svc.vehicle_id and kind == "map"
+                    if own_map and status in (mtp.ACK_STALE, mtp.ACK_VERSION):
+                        svc._own_refused(self.vid, version, status)
             with svc._update:
                 if not svc.pending_for(self.vid) and not svc._stop.is_set():
                     svc._update.wait(0.5)

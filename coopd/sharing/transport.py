@@ -12,11 +12,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from . import mtp, swarmkey
-from .mtp import Hello, MtpError, Offer, Reassembler, Transfer
-from .peers import PeerTable
+from .mtp import Hello, MtpError, Offer, Proof, Reassembler, Transfer
+from .peers import VEHICLE_IDS, PeerTable
 
 log = logging.getLogger("coopd.sharing")
 
+EVICT_WAIT_S = 1.0
+"""How long a new connection waits for the slot of an idle connection evicted for it."""
 SEND_CHUNK = 256 * 1024
 """Bytes per sendall: each chunk gets the write timeout, so a stalled receiver is noticed."""
 
@@ -130,31 +132,34 @@ class Arrival:
     """From the connection hello; None for thesis-format peers (no hello)."""
     address: str
     seconds: float
-    buffer: bytearray | None = None
 
-    def take(self, size: int) -> bytes | bytearray:
-        """The first `size` bytes as an object of their own, without a copy when possible."""
-        buf = self.buffer
-        if buf is not None:
-            try:
-                self.data.release()
-                del buf[size:]  # shrinks in place; refused while other views of it are alive
-                return buf
-            except (BufferError, ValueError):
-                pass
-        return bytes(memoryview(buf if buf is not None else self.data)[:size])
+    def take(self, size: int) -> bytes:
+        """The first `size` bytes as an object of their own: the message itself when `data` views
+        exactly that (a decrypted transfer), else a copy out of the receive buffer."""
+        obj = self.data.obj
+        if isinstance(obj, bytes) and len(obj) == size == self.data.nbytes:
+            return obj
+        return bytes(self.data[:size])
+
+
+INFLIGHT_LEDGER = "sharing-inflight"
+"""The memory budget's entry for the receive buffers of all transfers under way."""
 
 
 class _Budget:
-    """A byte budget shared by all reassembly buffers."""
+    """A byte budget shared by all reassembly buffers (max_inflight_bytes); with a ledger (the
+    daemon's MemoryBudget) every byte is also charged there, so it counts against memory_mb."""
 
-    def __init__(self, limit: int):
+    def __init__(self, limit: int, ledger=None):
         self.limit, self.used, self.peak = limit, 0, 0
+        self.ledger = ledger
         self._lock = threading.Lock()
 
     def reserve(self, n: int) -> bool:
         with self._lock:
             if self.used + n > self.limit:
+                return False
+            if self.ledger is not None and not self.ledger.add(INFLIGHT_LEDGER, n):
                 return False
             self.used += n
             self.peak = max(self.peak, self.used)
@@ -163,6 +168,8 @@ class _Budget:
     def release(self, n: int) -> None:
         with self._lock:
             self.used -= n
+            if self.ledger is not None:
+                self.ledger.add(INFLIGHT_LEDGER, -n)
 
 
 class MapServer:
@@ -170,7 +177,7 @@ class MapServer:
 
     def __init__(self, settings: TransportSettings, vehicle_id: int, accept: Callable[[Arrival], int],
                  peers: PeerTable, host: str = "0.0.0.0", port: int = 0,
-                 wants: Callable[[int, int], int] | None = None):
+                 wants: Callable[[int, int], int] | None = None, ledger=None):
         self.settings = settings
         self.vehicle_id = vehicle_id
         self._accept = accept
@@ -181,7 +188,7 @@ class MapServer:
         self._listener: socket.socket | None = None
         self._stop = threading.Event()
         self._slots = threading.BoundedSemaphore(settings.max_connections)
-        self._budget = _Budget(settings.max_inflight_bytes)
+        self._budget = _Budget(settings.max_inflight_bytes, ledger)
         self._conns: set[socket.socket] = set()
         self._receivers: set[_Connection] = set()
         self._per_address: dict[str, int] = {}
@@ -189,6 +196,7 @@ class MapServer:
         self._lock = threading.Lock()
         self._accept_thread: threading.Thread | None = None
         self.refused_busy = 0
+        self.evicted_idle = 0
         self.accepted = 0
         self.drops = DropLog()
         self.instance = int.from_bytes(os.urandom(8), "little")
@@ -265,10 +273,7 @@ class MapServer:
                 time.sleep(0.05)
                 continue
             self.accepted += 1
-            with self._lock:
-                per_address = self._per_address.get(addr[0], 0)
-            if per_address >= self.settings.max_connections_per_address or \
-                    not self._slots.acquire(blocking=False):
+            if not self._admit(addr[0]):
                 self.refused_busy += 1
                 self.peers.failure("busy", address=addr[0])
                 conn.close()
@@ -277,8 +282,40 @@ class MapServer:
             with self._lock:
                 self._conns.add(conn)
                 self._threads.add(t)
-                self._per_address[addr[0]] = per_address + 1
+                self._per_address[addr[0]] = self._per_address.get(addr[0], 0) + 1
             t.start()
+
+    def _admit(self, address: str) -> bool:
+        """Take a slot for a new connection from `address`: a free one, or the slot of the connection
+        idle the longest (unidentified ones first; one of the same address when that address is at its
+        limit), evicted for it. Connections busy with a frame or a transfer are never evicted."""
+        limit = self.settings.max_connections_per_address
+        with self._lock:
+            at_limit = self._per_address.get(address, 0) >= limit
+        if not at_limit and self._slots.acquire(blocking=False):
+            return True
+        victim = self._idle_victim(address if at_limit else None)
+        if victim is None:
+            return False
+        victim.evict()
+        self.evicted_idle += 1
+        deadline = time.monotonic() + EVICT_WAIT_S
+        while time.monotonic() < deadline and not self._stop.is_set():
+            with self._lock:
+                at_limit = self._per_address.get(address, 0) >= limit
+            if not at_limit and self._slots.acquire(timeout=0.05):
+                return True
+            if at_limit:
+                time.sleep(0.01)
+        return False
+
+    def _idle_victim(self, address: str | None):
+        with self._lock:
+            idle = [c for c in self._receivers if c.idle_since is not None and not c.evicted
+                    and (address is None or c.address == address)]
+        if not idle:
+            return None
+        return min(idle, key=lambda c: (c.identified, c.idle_since))
 
     def _serve(self, conn: socket.socket, addr) -> None:
         receiver = _Connection(self, conn, addr[0])
@@ -304,13 +341,28 @@ class _Connection:
     def __init__(self, server: MapServer, conn: socket.socket, address: str):
         self.server, self.conn, self.address = server, conn, address
         self.s = server.settings
+        self.keyed = self.s.swarm_key is not None
         self.reasm = Reassembler(self.s.block_size, self.s.max_bytes,
-                                 server._budget.reserve, server._budget.release)
+                                 server._budget.reserve, server._budget.release, authorized=not self.keyed)
         self.hello: Hello | None = None
         self.identified = False
-        """The hello's vehicle id is trusted: no swarm key, or a transfer verified with it."""
+        """The hello's vehicle id is trusted: no swarm key, or the sender proved the key."""
         self.nonce = swarmkey.new_nonce()
         self.seq = 0
+        self.cipher = None
+        """The connection's transfer AEAD once a keyed sender proved the key (transfers are sealed)."""
+        self.idle_since: float | None = time.monotonic()
+        """Since when the connection waits for the peer between frames (None while a frame or a
+        transfer is under way or being handled): the longest idle one is evicted when slots run out."""
+        self.evicted = False
+
+    def evict(self) -> None:
+        """Close an idle connection to make room for a new one (its thread ends at once)."""
+        self.evicted = True
+        try:
+            self.conn.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
 
     @property
     def vehicle_id(self) -> int | None:
@@ -336,6 +388,13 @@ class _Connection:
             cause, detail = "internal", repr(e)
         finally:
             self.reasm.close()
+        if self.evicted:
+            cause, detail = "evicted", "idle connection closed to make room for a new one (all slots taken)"
+        elif self.keyed and self.hello is not None and not self.reasm.authorized \
+                and cause in (None, "timeout", "cut"):
+            cause, detail = "auth", (f"the peer claiming vehicle {self.hello.vehicle_id} left after its "
+                                     f"hello without proving the swarm key (a wrong key, or protocol "
+                                     f"version {self.hello.version} < {mtp.PROOF_VERSION})")
         if cause is not None:
             self.server.peers.failure(cause, self.vehicle_id, self.address)
             self.server.drops.warn(self.address, self.vehicle_id, cause, detail)
@@ -356,9 +415,9 @@ class _Connection:
                     return
                 raise TimeoutError(f"{phase} deadline passed after {self.reasm.received_bytes} bytes")
             self.conn.settimeout(min(s.read_timeout, deadline - now))
-            buf = self.reasm.buffer()
             try:
-                n = self.conn.recv_into(buf)
+                with self.reasm.buffer() as buf:  # released at once: the buffer may grow for the next read
+                    n = self.conn.recv_into(buf)
             except TimeoutError:
                 if self.reasm.between_transfers:
                     continue  # quiet between transfers: only the phase deadline applies
@@ -370,20 +429,24 @@ class _Connection:
                                           f"of {self.reasm.announced_bytes} bytes")
                 return
             was_in = self.reasm.in_transfer
+            self.idle_since = None
             events = self.reasm.commit(n)
             if phase == "idle" and not self.reasm.between_transfers:
                 phase = "frame"  # a control frame has begun: base transfer time, not the idle time
                 deadline = min(deadline, time.monotonic() + s.transfer_base_s)
             if self.reasm.in_transfer and not was_in:
-                if s.swarm_key is not None and self.hello is None:
-                    raise Rejected("auth", "a swarm key is set and the peer sent no hello (thesis-format "
-                                           "peers cannot authenticate)")
                 t_start = time.monotonic()
                 phase = "transfer"
                 deadline = t_start + s.transfer_deadline(self.reasm.announced_bytes)
             for ev in events:
                 if isinstance(ev, Hello):
                     self._on_hello(ev)
+                    if self.keyed:  # the proof must follow at once: no slot is held by a hello alone
+                        phase, deadline = "proof", time.monotonic() + s.handshake_timeout
+                    else:
+                        phase, deadline = "idle", time.monotonic() + s.idle_timeout
+                elif isinstance(ev, Proof):
+                    self._on_proof(ev)
                     phase, deadline = "idle", time.monotonic() + s.idle_timeout
                 elif isinstance(ev, Transfer):
                     self._on_transfer(ev, time.monotonic() - t_start)
@@ -391,6 +454,8 @@ class _Connection:
                 elif isinstance(ev, Offer):
                     self._ack(0, self.server._wants(ev.origin, ev.version))
                     phase, deadline = "idle", time.monotonic() + s.idle_timeout
+            if self.reasm.between_transfers:
+                self.idle_since = time.monotonic()
 
     def _refuse_with_hello(self) -> None:
         """Tell a peer with another block size ours (so it fails clearly too), then close gently."""
@@ -408,6 +473,9 @@ class _Connection:
 
     def _on_hello(self, hello: Hello) -> None:
         s = self.s
+        if hello.vehicle_id not in VEHICLE_IDS:
+            raise Rejected("vehicle_id", f"hello claims vehicle id {hello.vehicle_id}, outside "
+                                         f"{VEHICLE_IDS.start}..{VEHICLE_IDS.stop - 1}")
         self.hello = hello
         keyed = s.swarm_key is not None
         tag = None
@@ -419,8 +487,20 @@ class _Connection:
         if hello.keyed != keyed:
             raise Rejected("auth", f"swarm key mismatch: peer key {'on' if hello.keyed else 'off'}, "
                                    f"ours {'on' if keyed else 'off'}")
-        if not keyed:  # keyed: the sender's vehicle id counts once a transfer proved its key
+        if not keyed:  # keyed: the sender's vehicle id counts once its proof verified
             self._seen()
+
+    def _on_proof(self, proof: Proof) -> None:
+        """A keyed sender's proof over both nonces: only now may it start a transfer or offer."""
+        s, hello = self.s, self.hello
+        expected = swarmkey.proof_tag(s.swarm_key, self.nonce, hello.nonce, hello.vehicle_id, hello.instance,
+                                      s.block_size)
+        if proof.vehicle_id != hello.vehicle_id or not swarmkey.tag_is_valid(expected, proof.tag):
+            raise Rejected("auth", f"invalid proof of the swarm key from the peer claiming vehicle "
+                                   f"{hello.vehicle_id}")
+        self.reasm.authorized = True
+        self.cipher = swarmkey.transfer_cipher(s.swarm_key, self.nonce, hello.nonce)
+        self._seen()
 
     def _seen(self) -> None:
         """The peer is who its hello says (no key, or its first transfer verified): count it seen."""
@@ -431,22 +511,34 @@ class _Connection:
         self.identified = True
 
     def _on_transfer(self, t: Transfer, seconds: float) -> None:
+        """Check the tag, hand the transfer on, ack; its buffer stays charged to the in-flight budget
+        until the server is done with it (a decode, a store), and is given back before the ack."""
+        try:
+            status = self._check_and_accept(t, seconds)
+        except Rejected as e:
+            self.server._budget.release(t.reserved)
+            self._ack(t.blocks, mtp.ACK_VERSION if e.cause == "version" else mtp.ACK_REJECTED)
+            raise
+        self.server._budget.release(t.reserved)
+        self._ack(t.blocks, status)
+
+    def _check_and_accept(self, t: Transfer, seconds: float) -> int:
         s = self.s
         seq = self.seq
         self.seq += 1
         if s.swarm_key is not None:
             expected = swarmkey.transfer_tag(s.swarm_key, self.nonce, self.hello.nonce, seq, t.blocks, t.data)
             if not swarmkey.tag_is_valid(expected, t.tag):
-                self._ack(t.blocks, mtp.ACK_REJECTED)
                 raise Rejected("auth", "missing or invalid HMAC tag" if t.tag else "transfer has no HMAC tag")
-            self._seen()
-        try:
-            status = self.server._accept(Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds,
-                                                 t.buffer))
-        except Rejected:
-            self._ack(t.blocks, mtp.ACK_REJECTED)
-            raise
-        self._ack(t.blocks, status)
+        if self.cipher is None:
+            arrival = Arrival(t.data, t.blocks, self.vehicle_id, self.address, seconds)
+        else:
+            try:
+                message = swarmkey.unseal(self.cipher, seq, t.data)
+            except ValueError as e:
+                raise Rejected("auth", str(e)) from None
+            arrival = Arrival(memoryview(message), t.blocks, self.vehicle_id, self.address, seconds)
+        return self.server._accept(arrival)
 
     def _ack(self, blocks: int, status: int) -> None:
         if self.hello is not None:
@@ -470,6 +562,8 @@ class PeerLink:
         self.nonce = swarmkey.new_nonce()
         self.peer: Hello | None = None
         self.seq = 0
+        self.cipher = None
+        """Transfers are sealed with it once we proved the key to a server of protocol 3 or later."""
 
     @classmethod
     def connect(cls, host: str, port: int, settings: TransportSettings, vehicle_id: int,
@@ -511,6 +605,11 @@ class PeerLink:
                 raise MtpError("auth", f"peer claiming vehicle {peer.vehicle_id} did not prove the swarm key "
                                        f"in its hello ({'invalid' if peer.tag else 'no'} tag; protocol "
                                        f"version {peer.version}, ours {mtp.PROTOCOL_VERSION})")
+            if peer.version >= mtp.PROOF_VERSION:  # our proof, before the server accepts anything else
+                tag = swarmkey.proof_tag(s.swarm_key, peer.nonce, self.nonce, self.vehicle_id, self.instance,
+                                         bs)
+                self.sock.sendall(mtp.proof_frame(self.vehicle_id, tag, bs))
+                self.cipher = swarmkey.transfer_cipher(s.swarm_key, peer.nonce, self.nonce)
         self.peer = peer  # set only once the handshake succeeded
         return peer
 
@@ -518,6 +617,8 @@ class PeerLink:
         """Send one message as an MTP transfer; return (ack status, seconds until the ack)."""
         s = self.s
         bs = s.block_size
+        if self.cipher is not None:
+            message = swarmkey.seal(self.cipher, self.seq, message)
         view = memoryview(message).cast("B")
         blocks = mtp.block_count(len(view), bs)
         pad = blocks * bs - len(view)

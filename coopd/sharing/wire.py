@@ -178,6 +178,22 @@ def encode_map(grid: OccupancyGrid, meta: MapMeta, encoding: str = "default") ->
     return header + payload
 
 
+VERSION_OFFSET = 68
+"""Byte offset of the map version in a coopd map message (type 1); the CRC covers the payload only."""
+
+
+def with_version(message, version: int) -> bytes:
+    """A copy of a coopd map message (type 1) carrying another map version."""
+    info = peek(message)
+    if info.message_type != MSG_COOPD_MAP:
+        raise WireError(f"message type {info.message_type} carries no map version")
+    if not 0 <= int(version) < 2**64:
+        raise ValueError(f"map version must be 0..2**64-1, got {version}")
+    out = bytearray(message)
+    struct.pack_into("<Q", out, VERSION_OFFSET, int(version))
+    return bytes(out)
+
+
 def encode_thesis_map(grid: OccupancyGrid, vehicle_id: int, compressed: bool = True) -> bytes:
     """A thesis message (type 0, Figure 31), byte-exact; it cannot carry the origin or version."""
     _check_int32("vehicle id", [vehicle_id])

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,6 +42,13 @@ THESIS_ANCHOR = {"share_110M_compressed_s": 1.75, "share_110M_uncompressed_s": 2
 GOAL_110M_LOOPBACK_S = 0.5
 SETTINGS = TransportSettings(max_bytes=256 << 20, max_cells=200_000_000, max_inflight_bytes=512 << 20,
                              read_timeout=30.0, transfer_base_s=120.0)
+BENCH_KEY = b"coopd share bench swarm key 0123"
+"""--key: both ends use this swarm key, so transfers are authenticated and encrypted as in a keyed swarm."""
+
+
+def key_args() -> list[str]:
+    """The --key flag for the bench's own subprocesses when this run is keyed."""
+    return ["--key"] if SETTINGS.swarm_key is not None else []
 
 
 # --------------------------------------------------------------------------------- receiver
@@ -104,7 +112,8 @@ def send_runs(host: str, port: int, size: str, encoding: str, repeat: int, versi
 class Receiver:
     def __init__(self, argv_prefix: list[str], host: str, port: int):
         env = dict(os.environ, PYTHONPATH=str(ROOT))
-        self.proc = subprocess.Popen([*argv_prefix, sys.executable, __file__, "--serve", host, str(port)],
+        self.proc = subprocess.Popen([*argv_prefix, sys.executable, __file__, *key_args(), "--serve", host,
+                                      str(port)],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
         self.lines: queue.Queue = queue.Queue()
         threading.Thread(target=lambda: [self.lines.put(x) for x in self.proc.stdout], daemon=True).start()
@@ -222,8 +231,8 @@ def run_shaped(sizes, rate_mbit: float, encodings) -> tuple[list[dict], str | No
             for size in sizes:
                 for enc in encodings:
                     out = subprocess.run(
-                        ["ip", "netns", "exec", a, sys.executable, __file__, "--send", "10.213.9.2", "7400",
-                         size, enc, "1", str(version)],
+                        ["ip", "netns", "exec", a, sys.executable, __file__, *key_args(), "--send",
+                         "10.213.9.2", "7400", size, enc, "1", str(version)],
                         check=True, capture_output=True, text=True, timeout=900,
                         env=dict(os.environ, PYTHONPATH=str(ROOT)))
                     version += 1
@@ -254,7 +263,12 @@ def main() -> None:
     ap.add_argument("--fan-in", default="1,4,16", help="concurrent senders into one receiver ('' to skip)")
     ap.add_argument("--serve", nargs=2, metavar=("HOST", "PORT"))
     ap.add_argument("--send", nargs=6, metavar=("HOST", "PORT", "SIZE", "ENCODING", "REPEAT", "VERSION"))
+    ap.add_argument("--key", action="store_true",
+                    help="both ends hold a swarm key: transfers authenticated (HMAC) and encrypted (AEAD)")
     args = ap.parse_args()
+    global SETTINGS
+    if args.key:
+        SETTINGS = replace(SETTINGS, swarm_key=BENCH_KEY)
     if args.serve:
         serve(args.serve[0], int(args.serve[1]))
         return
@@ -274,7 +288,7 @@ def main() -> None:
     big = [r for r in loop if r["size"] == "110M" and r["encoding"] == wire.DEFAULT_ENCODING]
     report = {
         "benchmark": "share", "host": platform.node(), "python": platform.python_version(),
-        "cpus": os.cpu_count(), "block_size": SETTINGS.block_size,
+        "cpus": os.cpu_count(), "block_size": SETTINGS.block_size, "keyed": SETTINGS.swarm_key is not None,
         "what": "end_to_end_s = encode (compress) + MTP transfer + receiver inspect/decode (decompress) "
                 "until its ack; best of --repeat on loopback, one run shaped",
         "loopback": loop, "fan_in_loopback": fan_in, "shaped": shaped, "shaped_skipped": why,

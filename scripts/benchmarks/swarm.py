@@ -34,6 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path[:0] = [str(ROOT)]
 
+from coopd.cli.key_commands import key_file_text  # noqa: E402
 from coopd.daemon.checkpoint import CheckpointStore  # noqa: E402
 from coopd.daemon.config import MergingConfig  # noqa: E402
 from coopd.daemon.control import ControlError, request  # noqa: E402
@@ -166,6 +167,9 @@ class Swarm:
 
     def prepare(self) -> None:
         """Each daemon's state dir: its map as the local checkpoint (version 1), its map frame, its config."""
+        key_file = self.workdir / "swarm.key"  # one key for the whole bench swarm (secure by default)
+        key_file.write_text(key_file_text(os.urandom(32)))
+        key_file.chmod(0o600)
         for vid, m in zip(self.ids, self.maps, strict=True):
             d = self.workdir / f"d{vid}"
             store = CheckpointStore(d / "state")
@@ -177,7 +181,8 @@ class Swarm:
                 "camera": {"source": f"socket:{d / 'no-camera.sock'}"},
                 "sharing": {"listen_host": host(vid, self.shared_address), "port": SHARING_BASE + vid,
                             "peers": [f"{host(o, self.shared_address)}:{SHARING_BASE + o}"
-                                      for o in self.ids if o != vid]},
+                                      for o in self.ids if o != vid],
+                            "swarm_key_file": str(key_file)},
                 "merging": self.merging,
                 "daemon": {"state_dir": str(d / "state"), "control_socket": self.sock(vid)},
             }

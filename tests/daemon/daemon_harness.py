@@ -123,6 +123,17 @@ class Sim:
         return map_accuracy(grid, self.to_world(i, origin_fc_enu), gt, gt_origin)
 
 
+def swarm_key_file(workdir: Path) -> Path:
+    """The swarm key every daemon of one test shares (made with coopctl's key format once)."""
+    from coopd.cli.key_commands import key_file_text
+
+    path = workdir / "swarm.key"
+    if not path.exists():
+        path.write_text(key_file_text(os.urandom(32)))
+        path.chmod(0o600)
+    return path
+
+
 class Coopd:
     """One coopd process (python -m coopd.daemon.main) with its own state dir and control socket."""
 
@@ -133,6 +144,8 @@ class Coopd:
         self.socket = str(self.dir / "control.sock")
         self.args = ["--no-config", "--state-dir", str(self.state_dir), "--control-socket", self.socket,
                      "--listen-host", "127.0.0.1", *args]
+        if not {"--no-sharing", "--open", "--swarm-key-file"} & set(args):  # secure by default
+            self.args += ["--swarm-key-file", str(swarm_key_file(workdir))]
         self.extra_env = extra_env or {}
         self.proc: subprocess.Popen | None = None
         self.logs: list[Path] = []

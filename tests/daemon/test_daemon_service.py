@@ -15,7 +15,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from daemon_harness import NotifyListener, port_block, wait_until, workdir
+from daemon_harness import NotifyListener, port_block, swarm_key_file, wait_until, workdir
 
 from coopd.daemon import control
 from coopd.daemon.budget import MemoryBudget
@@ -568,3 +568,56 @@ def test_peers_results_stop_counting_once_every_map_is_merged():
     finally:
         m.stop()
         runner.join(5)
+
+
+def test_a_refused_map_version_starts_a_new_epoch_and_the_map_is_published_again(wd):
+    """A peer holding a forged newer version of our map refuses ours: the daemon publishes it again
+    in a new version epoch (from the clock, above every earlier one, also after a restart)."""
+    from coopd.daemon import service as daemon_service
+    from coopd.sharing.mtp import ACK_VERSION
+
+    d = Daemon(_config(wd))
+    first = d.epoch
+    assert VersionReserve(d.state_dir).epoch == first  # written: a restart starts above it
+    d._published_version = 12
+    d._epoch_at -= daemon_service.NEW_EPOCH_MIN_S
+    d.epoch -= 5  # as if started five seconds ago
+    d._own_map_refused(2, 1234, ACK_VERSION)
+    d._maybe_new_epoch()
+    assert d.epoch > first and d._published_version == 0 and VersionReserve(d.state_dir).epoch == d.epoch
+    assert d._own_refusal is None
+    again = Daemon(_config(wd))
+    assert again.epoch > d.epoch
+    d.mapper.close()
+    again.mapper.close()
+
+
+def test_maps_evicted_from_the_store_leave_no_checkpoint_to_come_back(tmp_path):
+    """Made-up vehicles that filled the store and were evicted must not return after a restart."""
+    from coopd.sharing.peers import MessageSummary
+
+    cfg = from_dict({
+        "vehicle": {"mavlink": "udpin:127.0.0.1:21170"},
+        "camera": {"source": f"socket:{tmp_path}/no-camera.sock"},
+        "sharing": {"listen_host": "127.0.0.1", "port": 21171,
+                    "swarm_key_file": str(swarm_key_file(tmp_path))},
+        "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock")},
+    })
+    d = Daemon(cfg)
+    try:
+        grid = OccupancyGrid.empty((8, 8, 4), 0.1)
+        grid.flat[np.arange(0, grid.size, 5)] = 100
+        maps = {vid: encode_map(grid, MapMeta(vid, 1, 1.0)) for vid in (5, 7)}
+        for vid, message in maps.items():
+            assert d.sharing.received.offer(MessageSummary(vid, 1, len(message), grid.size), message)
+        d._received_restored = True
+        d.checkpoint()
+        assert d.store.names() == ["peer-5", "peer-7"]
+        d.sharing.received.max_vehicles = 2  # vehicle 9 arrives: 5, received first, is evicted ...
+        message = encode_map(grid, MapMeta(9, 1, 1.0))
+        assert d.sharing.received.offer(MessageSummary(9, 1, len(message), grid.size), message)
+        assert {m.vehicle_id for m in d.sharing.received.all()} == {7, 9}
+        d.checkpoint()
+        assert d.store.names() == ["peer-7", "peer-9"]  # ... and its checkpoint with it
+    finally:
+        d.mapper.close()

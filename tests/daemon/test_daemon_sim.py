@@ -217,23 +217,33 @@ def test_two_daemons_share_their_maps():
                 assert wait_until(lambda p=peer, v=vid: v in p.status()["sharing"]["received_results"], 15,
                                   poll=0.5), peer.status()["sharing"]
         print(json.dumps(report))
-        # received maps are checkpointed on stop and restored on start; restarted with a memory budget
-        # only ~2 MiB above the interpreter's own RSS, a merge no longer fits: deferred, reported
-        baseline_mib = statuses[0]["memory"]["baseline_bytes"] >> 20
+        # received maps are checkpointed on stop and restored on start
         rc, _ = daemons[0].terminate()
         assert rc == 0
         assert list(daemons[0].state_dir.glob("peer-2.*.cmap"))
-        daemons[0].args += ["--memory-mb", str(baseline_mib + 2)]
         daemons[0].start()
         s = daemons[0].wait_running()
         assert "2" in s["sharing"]["received_maps"], s["sharing"]
-        assert s["memory"]["entries"]["received:2"] > 0
+        assert s["memory"]["entries"].get("received:2", 0) > 0 or wait_until(  # accounted each main loop
+            lambda: daemons[0].status()["memory"]["entries"].get("received:2"), 3)
+        # restarted with a memory budget only ~2 MiB above the interpreter's own RSS, vehicle 2's map
+        # could never be merged: it is set aside at start (not restored to defer every merge) and
+        # refused when vehicle 2 sends it again, before it is decoded
+        baseline_mib = statuses[0]["memory"]["baseline_bytes"] >> 20
+        rc, _ = daemons[0].terminate()
+        assert rc == 0
+        daemons[0].args += ["--memory-mb", str(baseline_mib + 2)]
+        daemons[0].start()
+        s = daemons[0].wait_running()
+        assert "2" not in s["sharing"]["received_maps"], s["sharing"]
+        assert any("peer-2" in p and "can merge" in p for p in s["checkpoint"]["problems"]), s["checkpoint"]
+        assert wait_until(lambda: (daemons[0].status()["sharing"]["peers"] or [{}])[0].get("failures", {})
+                          .get("oversize", 0) >= 1, 30, poll=0.5), daemons[0].status()["sharing"]
         cli = subprocess.run([PYTHON, "-m", "coopd.cli.coopctl", "merge-now", "--socket", daemons[0].socket],
                              capture_output=True, text=True, env=env(), cwd=ROOT, timeout=130)
-        assert cli.returncode == 2 and "deferred" in cli.stdout and "memory budget" in cli.stdout, (
-            cli, s["memory"], s["map"]["cells"])
+        assert cli.returncode == 0 and "deferred" not in cli.stdout, (cli, s["memory"], s["map"]["cells"])
         merges = daemons[0].status()["merges"]
-        assert merges["deferred"] >= 1 and merges["last"]["outcome"] == "deferred", merges
+        assert merges["deferred"] == 0, merges
         memory = daemons[0].status()["memory"]
         report["tight budget"] = {"merge-now": cli.stdout.strip(), "MiB": {
             k: memory[k] >> 20 for k in ("budget_bytes", "baseline_bytes", "rss_bytes")}}

@@ -5,10 +5,13 @@ watchdog pings; a frozen daemon (SIGSTOP: no thread runs) is killed by the watch
 systemctl stop ends it cleanly within seconds."""
 
 import json
+import os
 import time
 
 import pytest
 from test_nspawn_boot import DROPIN, INNER_SRC, SRC, VENV, Container, _ensure_rootfs, _need_tools, coopctl
+
+from coopd.cli.key_commands import key_file_text
 
 pytestmark = pytest.mark.slow
 
@@ -24,6 +27,7 @@ mavlink = "udpin:127.0.0.1:15351"
 [sharing]
 listen_host = "127.0.0.1"
 port = 15451
+swarm_key_file = "/etc/coopd/swarm.key"
 """
 
 
@@ -45,10 +49,12 @@ def test_real_coopd_under_systemd():
     try:
         c.write("/usr/local/bin/coopd", WRAPPER, "0755")
         c.write("/etc/coopd/coopd.toml", CONFIG)
+        c.write("/etc/coopd/swarm.key", key_file_text(os.urandom(32)), "0600")
         c.write("/etc/systemd/system/coopd.service", (SRC / "systemd/coopd.service").read_text())
         c.write("/etc/systemd/system/coopd.service.d/test-python-under-root.conf", DROPIN)
         c.write("/etc/sysusers.d/coopd.conf", (SRC / "systemd/coopd.sysusers").read_text())
         c.run("systemd-sysusers")
+        c.run("chown", "coopd:coopd", "/etc/coopd/swarm.key")
         c.run("systemctl", "daemon-reload")
 
         t0 = time.monotonic()

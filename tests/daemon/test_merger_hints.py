@@ -148,12 +148,15 @@ def test_unchanged_edges_are_not_published_again(chain):
 
 
 def _daemon_config(tmp_path, **merging):
+    from daemon_harness import swarm_key_file
+
     from coopd.daemon.config import from_dict
 
     return from_dict({
         "vehicle": {"mavlink": "udpin:127.0.0.1:21160"},
         "camera": {"source": f"socket:{tmp_path}/no-camera.sock"},
-        "sharing": {"enabled": True, "listen_host": "127.0.0.1", "port": 21161},
+        "sharing": {"enabled": True, "listen_host": "127.0.0.1", "port": 21161,
+                    "swarm_key_file": str(swarm_key_file(tmp_path))},
         "merging": merging,
         "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock")},
     })

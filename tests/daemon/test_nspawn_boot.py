@@ -26,6 +26,8 @@ from pathlib import Path
 
 import pytest
 
+from coopd.cli.key_commands import key_file_text
+
 pytestmark = pytest.mark.slow
 
 SRC = Path(__file__).resolve().parents[2]
@@ -169,11 +171,15 @@ def test_unit_under_real_systemd(capsys):
     report = []
     try:
         c.write("/usr/local/bin/coopd", WRAPPER, "0755")
-        c.write("/etc/coopd/coopd.toml", (SRC / "etc/coopd.toml").read_text())
+        # the shipped config with the one step every install adds: a swarm key (docs/operations.md)
+        c.write("/etc/coopd/coopd.toml", (SRC / "etc/coopd.toml").read_text().replace(
+            'swarm_key_file = ""', 'swarm_key_file = "/etc/coopd/swarm.key"'))
+        c.write("/etc/coopd/swarm.key", key_file_text(os.urandom(32)), "0600")
         c.write("/etc/systemd/system/coopd.service", (SRC / "systemd/coopd.service").read_text())
         c.write("/etc/systemd/system/coopd.service.d/test-python-under-root.conf", DROPIN)
         c.write("/etc/sysusers.d/coopd.conf", (SRC / "systemd/coopd.sysusers").read_text())
         c.run("systemd-sysusers")
+        c.run("chown", "coopd:coopd", "/etc/coopd/swarm.key")
         c.run("systemctl", "daemon-reload")
 
         t0 = time.monotonic()

@@ -299,19 +299,28 @@ class MtpTarget(Target):
         plain = b"".join(bytes(b) for b in mtp.encode_transfer(msg, MTP_BS))
         tagged = b"".join(bytes(b) for b in mtp.encode_transfer(msg, MTP_BS, tag=bytes(32)))
         offer = mtp.offer_frame(5, 12, MTP_BS)
-        return [hello, hello + plain, hello + tagged + offer + plain, plain, hello + offer]
+        keyed = mtp.hello_frame(mtp.Hello(MTP_BS, 9, bytes(range(16)), True, 77))
+        proof = mtp.proof_frame(9, bytes(range(16)), MTP_BS)
+        return [hello, hello + plain, hello + tagged + offer + plain, plain, hello + offer,
+                keyed + proof + tagged + offer, keyed + tagged, keyed + offer]
 
     def check(self, data: bytes) -> None:
         chunks = random.Random(zlib.crc32(data))
         events = []
 
+        # a keyed hello puts the reassembler in the keyed server's state: nothing before a proof
+        keyed = len(data) > 7 and data[:2] == bytes([mtp.MARK, mtp.HELLO]) and data[7] & mtp.HELLO_FLAG_KEY
+
         def feed_all():
-            r = mtp.Reassembler(MTP_BS, MTP_MAX_BYTES)
+            r = mtp.Reassembler(MTP_BS, MTP_MAX_BYTES, authorized=not keyed)
             view = memoryview(data)
             try:
                 while len(view):
                     n = chunks.choice((1, 3, MTP_BS, 1000, len(view)))
-                    events.extend(r.feed(view[:n]))
+                    for e in r.feed(view[:n]):
+                        events.append(e)
+                        if isinstance(e, mtp.Proof):
+                            r.authorized = True  # what the server does once the tag verified
                     view = view[n:]
             finally:
                 r.close()
@@ -327,6 +336,9 @@ class MtpTarget(Target):
             elif isinstance(e, mtp.Hello):
                 if e.block_size != MTP_BS or len(e.nonce) != 16:
                     raise Finding(f"mtp: hello {e} accepted with the wrong block size or nonce")
+            elif isinstance(e, mtp.Proof):
+                if not keyed or len(e.tag) != 16:
+                    raise Finding(f"mtp: proof {e} accepted on an unkeyed connection or with a bad tag")
             elif not isinstance(e, mtp.Offer):
                 raise Finding(f"mtp: unexpected event {e!r}")
 

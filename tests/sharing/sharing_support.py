@@ -5,6 +5,7 @@ import time
 
 import sharing_testmsg as tm
 
+from coopd.sharing import versions
 from coopd.sharing.service import SharingConfig, SharingService
 from coopd.sharing.transport import TransportSettings
 
@@ -18,11 +19,12 @@ def settings(**overrides) -> TransportSettings:
 
 
 def service(vid: int, host: str = "127.0.0.1", port: int = 0, peers=(), peer_ports=(), relay=False,
-            scan_period=0.2, grace_period=30.0, **transport) -> SharingService:
+            scan_period=0.2, grace_period=30.0, max_epoch_ahead_s=versions.MAX_EPOCH_AHEAD_S,
+            on_own_refused=None, **transport) -> SharingService:
     cfg = SharingConfig(vehicle_id=vid, listen_host=host, port=port, peers=tuple(peers),
                         peer_ports=tuple(peer_ports), scan_period=scan_period, grace_period=grace_period,
-                        relay=relay, transport=settings(**transport))
-    return SharingService(cfg, inspect=tm.inspect)
+                        relay=relay, max_epoch_ahead_s=max_epoch_ahead_s, transport=settings(**transport))
+    return SharingService(cfg, inspect=tm.inspect, on_own_refused=on_own_refused)
 
 
 def wait_until(pred, timeout: float = 10.0, step: float = 0.05) -> bool:

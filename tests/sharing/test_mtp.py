@@ -135,8 +135,9 @@ def test_zero_block_transfer_is_refused():
 
 def test_reserve_refusal_is_busy():
     r = Reassembler(BS, reserve=lambda n: False, release=lambda n: None)
+    r.feed(mtp.start_frame(4, BS))  # buffers are reserved as data arrives, not on the announcement
     with pytest.raises(MtpError) as e:
-        r.feed(mtp.start_frame(4, BS))
+        r.feed(b"\x00")
     assert e.value.cause == "busy"
 
 

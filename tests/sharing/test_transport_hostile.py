@@ -137,8 +137,9 @@ def test_connection_flood_leaves_room_for_good_peers_and_bounded_threads(server)
     finally:
         for s in flood:
             s.close()
-    assert svc._server.refused_busy > 0 and took < 8
-    assert failures(svc).get("busy", 0) + failures(svc).get("timeout", 0) >= 50
+    # a full server makes room by evicting the longest idle (here: silent) connection, else refuses
+    assert svc._server.refused_busy + svc._server.evicted_idle > 0 and took < 8
+    assert sum(failures(svc).get(cause, 0) for cause in ("busy", "timeout", "evicted")) >= 50
 
 
 def test_concurrent_transfers_share_a_bounded_byte_budget(server):
@@ -159,7 +160,7 @@ def test_concurrent_transfers_share_a_bounded_byte_budget(server):
         for s in socks:
             s.close()
     assert wait_until(lambda: svc._server.inflight_bytes == 0, 3)
-    assert failures(svc).get("cut") == 2
+    assert wait_until(lambda: failures(svc).get("cut") == 2, 3), failures(svc)  # counted right after
     good_peer_delivers(svc, 5, 1)
 
 

@@ -1,0 +1,55 @@
+"""coopctl key: make the swarm key every vehicle of a swarm shares (docs/sharing.md, "Swarm key").
+
+    coopctl key generate --out /etc/coopd/swarm.key     # 32 random bytes as "hex:...", mode 0600
+
+The file holds one line, `hex:` and 64 hex digits, the format the daemon's sharing.swarm_key_file
+reads (coopd.sharing.swarmkey.read_key_file, the same decoder `coopctl key check` uses).
+"""
+
+import os
+from pathlib import Path
+
+from coopd.sharing import swarmkey
+
+KEY_BYTES = 32
+
+
+def register(subparsers) -> None:
+    """Add the `key` command group to coopctl."""
+    p = subparsers.add_parser("key", help="make or check the swarm key file")
+    sub = p.add_subparsers(dest="key_command", metavar="SUBCOMMAND", required=True)
+    gen = sub.add_parser("generate", help=f"write a new random {KEY_BYTES}-byte swarm key (mode 0600)")
+    gen.add_argument("--out", type=Path, required=True, help="the key file to create")
+    gen.add_argument("--force", action="store_true", help="replace an existing file")
+    gen.set_defaults(handler=run_generate)
+    check = sub.add_parser("check", help="read a key file as the daemon does; print its length")
+    check.add_argument("file", type=Path)
+    check.set_defaults(handler=run_check)
+
+
+def key_file_text(key: bytes) -> str:
+    """The key file's content for `key`."""
+    return f"hex:{key.hex()}\n"
+
+
+def run_generate(args) -> int:
+    """Create the key file with mode 0600 (never readable by others, not even for a moment)."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if args.force else os.O_EXCL)
+    fd = os.open(args.out, flags, 0o600)
+    try:
+        os.fchmod(fd, 0o600)  # also when --force replaced a file with other permissions
+        os.write(fd, key_file_text(os.urandom(KEY_BYTES)).encode("ascii"))
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    print(f"swarm key written to {args.out} (mode 0600); copy it to every vehicle of the swarm and set "
+          f"[sharing] swarm_key_file")
+    return 0
+
+
+def run_check(args) -> int:
+    key = swarmkey.read_key_file(args.file)
+    if key is None:
+        raise ValueError(f"{args.file} holds no key")
+    print(f"{args.file}: a swarm key of {len(key)} bytes")
+    return 0
