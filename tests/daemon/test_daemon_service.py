@@ -183,7 +183,8 @@ def test_a_hung_merging_or_sharing_thread_stops_the_watchdog_and_is_logged(wd, w
     _, share_port = port_block(3)
     cfg = _config(wd)
     if worker == "sharing":
-        sharing = replace(cfg.sharing, enabled=True, port=share_port, listen_host="127.0.0.1")
+        sharing = replace(cfg.sharing, enabled=True, port=share_port, listen_host="127.0.0.1",
+                          swarm_key_file=str(swarm_key_file(wd)))
         cfg = replace(cfg, sharing=sharing)
     d = Daemon(cfg, notifier=notifier)
     d.progress.busy_quiet_s = 1.0
