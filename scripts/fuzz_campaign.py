@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Long fuzz campaigns over coopd's outward-facing parsers (the harness of tests/fuzz, time-boxed).
 
-Usage: scripts/fuzz_campaign.py (--all | TARGET ...) [--seconds N] [--seed S] [--out DIR]
+Usage: scripts/fuzz_campaign.py (--all | TARGET ...) [--seconds N] [--cases N] [--seed S] [--out DIR]
                                 [--engine mutation|atheris]
        scripts/fuzz_campaign.py TARGET --replay FILE      re-run one saved input, print its finding
 Findings (failing inputs + traceback) go to DIR/<target>/, survivors to DIR/<target>/corpus/ (the
@@ -44,13 +44,13 @@ def save_corpus(directory: Path, inputs) -> None:
         (directory / f"{hashlib.sha1(data).hexdigest()}.bin").write_bytes(data)
 
 
-def campaign(name: str, seconds: float, seed: int, out: Path, workdir: str) -> dict:
-    """Run one target for `seconds`; its summary entry."""
+def campaign(name: str, seconds: float, seed: int, out: Path, workdir: str, cases: int | None = None) -> dict:
+    """Run one target for `seconds`, or until `cases` inputs when given; its summary entry."""
     target_dir = out / name
     corpus_dir = target_dir / "corpus"
     with make_target(name, workdir) as target:
-        result = run_mutations(target, random.Random(seed), seconds=seconds, findings_dir=target_dir,
-                               extra_seeds=load_corpus(corpus_dir))
+        result = run_mutations(target, random.Random(seed), cases=cases, seconds=seconds,
+                               findings_dir=target_dir, extra_seeds=load_corpus(corpus_dir))
     save_corpus(corpus_dir, result.survivors)
     return {"cases": result.cases, "seconds": round(result.seconds, 1),
             "cases_per_second": round(result.cases / max(result.seconds, 1e-9)),
@@ -102,7 +102,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("targets", nargs="*", help=f"targets: {', '.join(TARGETS)}")
     ap.add_argument("--all", action="store_true", help="every target, one after the other")
-    ap.add_argument("--seconds", type=float, default=60.0, help="time budget per target (default 60)")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="time budget per target (default 60; with --cases a cap, default 3600)")
+    ap.add_argument("--cases", type=int, default=None,
+                    help="mutation engine: stop each target after this many cases (within --seconds)")
     ap.add_argument("--seed", type=int, default=None, help="mutation RNG seed (default: time-based)")
     ap.add_argument("--out", type=Path, default=Path("out/fuzz"))
     ap.add_argument("--engine", choices=("mutation", "atheris"), default="mutation",
@@ -110,6 +113,8 @@ def main(argv=None) -> int:
     ap.add_argument("--replay", type=Path, help="re-run one saved input against the (single) target")
     ap.add_argument("--verbose", action="store_true", help="show the parsers' own log messages")
     args = ap.parse_args(argv)
+    if args.seconds is None:
+        args.seconds = 3600.0 if args.cases else 60.0
     logging.basicConfig(level=logging.INFO if args.verbose else logging.CRITICAL)
     names = list(TARGETS) if args.all else args.targets
     unknown = [n for n in names if n not in TARGETS]
@@ -128,7 +133,7 @@ def main(argv=None) -> int:
             if engine == "atheris":
                 entry = atheris_campaign(name, args.seconds, args.out)
             else:
-                entry = campaign(name, args.seconds, seed, args.out, workdir)
+                entry = campaign(name, args.seconds, seed, args.out, workdir, args.cases)
             finished = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             entry.update(seed=seed, engine=engine, finished=finished)
             summary["targets"][name] = entry

@@ -148,16 +148,7 @@ class CheckpointStore:
         return None
 
     def _prune(self, name: str, gens: list[tuple[int, Path]]) -> int:
-        removed = 0
-        for _, path in sorted(gens, reverse=True)[self.keep :]:
-            try:
-                path.unlink()
-                removed += 1
-            except FileNotFoundError:
-                pass
-            except OSError as e:
-                log.warning("cannot remove old checkpoint %s: %s", path, e)
-        return removed
+        return _unlink([path for _, path in sorted(gens, reverse=True)[self.keep :]])
 
     # ------------------------------------------------------------------------------------ loading
     def load_latest(self, name: str = "local", max_cells: int | None = None) -> Checkpoint | None:
@@ -194,17 +185,8 @@ class CheckpointStore:
 
     def remove(self, name: str) -> int:
         """Delete every generation of `name` (a map no longer held); returns how many."""
-        removed = 0
         with self._lock:
-            for _, path in self.generations(name):
-                try:
-                    path.unlink()
-                    removed += 1
-                except FileNotFoundError:
-                    pass
-                except OSError as e:
-                    log.warning("cannot remove checkpoint %s: %s", path, e)
-        return removed
+            return _unlink([path for _, path in self.generations(name)])
 
     def load_all(self) -> dict[str, Checkpoint]:
         """The newest valid checkpoint of every name on disk."""
@@ -329,3 +311,17 @@ class VersionReserve:
             return False
         self.reserved = reserved
         return True
+
+
+def _unlink(paths: list[Path]) -> int:
+    """Delete checkpoint files; how many went (one already gone is no error, others are logged)."""
+    removed = 0
+    for path in paths:
+        try:
+            path.unlink()
+            removed += 1
+        except FileNotFoundError:
+            pass
+        except OSError as e:
+            log.warning("cannot remove checkpoint %s: %s", path, e)
+    return removed
