@@ -27,6 +27,7 @@ from pathlib import Path
 import pytest
 
 from coopd.cli.key_commands import key_file_text
+from tests.proof import skip_proof
 
 pytestmark = pytest.mark.slow
 
@@ -53,14 +54,14 @@ def _need_tools():
         pytest.skip("needs root (systemd-nspawn)")
     for tool in ("systemd-nspawn", "nsenter"):
         if shutil.which(tool) is None:
-            pytest.skip(f"{tool} not installed (Debian packages systemd-container, util-linux)")
+            skip_proof(f"{tool} not installed (Debian packages systemd-container, util-linux)")
 
 
 def _ensure_rootfs():
     if (ROOTFS / "usr/lib/systemd/systemd").exists():
         return
     if shutil.which("debootstrap") is None:
-        pytest.skip(f"no cached tree at {ROOTFS} and debootstrap is not installed")
+        skip_proof(f"no cached tree at {ROOTFS} and debootstrap is not installed")
     tmp = ROOTFS.with_name(ROOTFS.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.parent.mkdir(parents=True, exist_ok=True)
@@ -78,7 +79,7 @@ def _ensure_rootfs():
         timeout=1200,
     )
     if r.returncode != 0:
-        pytest.skip(f"debootstrap failed (network?): {r.stderr.strip()[-300:]}")
+        skip_proof(f"debootstrap failed (network?): {r.stderr.strip()[-300:]}")
     tmp.rename(ROOTFS)
 
 

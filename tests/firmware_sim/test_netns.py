@@ -9,9 +9,15 @@ import sys
 import pytest
 
 from firmware_sim.netns import FC_LINK_PREFIX, NetnsLab, netns_unavailable_reason, remove_stale
+from tests.proof import skip_proof
 
 REASON = netns_unavailable_reason()
-pytestmark = pytest.mark.skipif(REASON is not None, reason=f"needs network namespaces: {REASON}")
+
+
+@pytest.fixture(autouse=True)
+def _needs_netns():
+    if REASON is not None:
+        skip_proof(f"needs network namespaces: {REASON}")
 SEND = ("import socket, sys; "
         "socket.socket(socket.AF_INET, socket.SOCK_DGRAM).sendto(b'x', (sys.argv[1], 22990))")
 

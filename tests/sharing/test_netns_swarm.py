@@ -11,6 +11,8 @@ from netns_support import LoopbackLab, NetnsLab, Node, netns_unavailable_reason
 from sharing_node import payload, real_map
 from sharing_support import free_port, wait_until
 
+from tests.proof import skip_proof
+
 NETNS_REASON = netns_unavailable_reason()
 
 
@@ -21,7 +23,7 @@ def digest(vid: int, version: int, size: int) -> str:
 @pytest.fixture(params=["netns", "loopback"])
 def lab(request):
     if request.param == "netns" and NETNS_REASON:
-        pytest.skip(f"network namespaces unavailable ({NETNS_REASON}); the loopback variant runs instead")
+        skip_proof(f"network namespaces unavailable ({NETNS_REASON}); the loopback variant runs instead")
     if request.param == "loopback" and not NETNS_REASON:
         pytest.skip("network namespaces available: the netns variant of this test ran instead")
     the_lab = NetnsLab() if request.param == "netns" else LoopbackLab()
