@@ -126,11 +126,16 @@ def _feature_candidates(a: PreparedMap, b: PreparedMap, params: MergeParams, tm:
     return [Candidate(h.transform, h.inlier_count, params.ransac_model) for h in hyps]
 
 
+def _refine_points(b: PreparedMap, params: MergeParams) -> np.ndarray:
+    """b's occupied cells thinned evenly to about refine_max_points: what refinement moves."""
+    return b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
+
+
 def _refined(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) -> Candidate:
     """The hypothesis pulled onto a's occupied cells by ICP (unchanged when refinement is off)."""
     if not (params.refine and a.tree is not None and len(b.summary.occupied_m)):
         return c
-    src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
+    src = _refine_points(b, params)
     t, frac = icp(a.tree, a.summary.occupied_m, src, c.transform, params.refine_iterations, a.grid.resolution)
     inliers = int(round(frac * len(src))) if c.source in ("search", "given") else c.inliers
     return Candidate(t, inliers, c.source)
@@ -141,9 +146,8 @@ def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) 
     for the winner, since a shift within a cell does not change how validation ranks hypotheses."""
     if not (params.refine and params.refine_subcell and len(b.summary.occupied_m)):
         return c
-    src = b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
-    t = subcell_shift(a.grid.cells >= params.occupied_threshold, a.grid.offset, a.grid.resolution, src,
-                      c.transform)
+    t = subcell_shift(a.grid.cells >= params.occupied_threshold, a.grid.offset, a.grid.resolution,
+                      _refine_points(b, params), c.transform)
     return Candidate(t, c.inliers, c.source)
 
 
