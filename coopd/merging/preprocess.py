@@ -146,8 +146,8 @@ def despeckle(grid: OccupancyGrid, params: MergeParams) -> OccupancyGrid:
     neighbours (of 26) and more free neighbours than unknown ones becomes unknown, when such cells are
     at least despeckle_min_share of the occupied cells. A surface the sensor saw has its own occupied
     neighbours, or unknown space behind it as much as free space in front; a flipped cell floating in
-    free space has neither. Clean maps have 0-3.3 % of such cells (mostly real, e.g. thin poles) and
-    stay as they are; 2 % flipped cells make them 6-37 %. On such a map the filter runs
+    free space has neither. Clean maps hold few such cells (mostly real, e.g. thin poles) and stay
+    as they are; 2 % of flipped cells pass despeckle_min_share. On such a map the filter runs
     despeckle_passes times: a speckle that leaned on others loses them in the pass before. Unknown,
     not free: the filter removes evidence, it never invents free space. The grid itself when nothing
     is removed."""

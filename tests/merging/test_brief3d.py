@@ -100,6 +100,7 @@ def test_yaw_steering_matches_a_turned_copy_within_cc_d_and_euler_steering_does_
         assert same.sum() >= 50
         d = hamming_block(fa.descriptors[same], fb.descriptors[nearest[same]])
         medians[steering] = float(np.median(np.diag(d)))
+    print(f"{deg} deg copy, median Hamming distance of true correspondences: {medians}")
     assert medians["yaw"] <= MergeParams().match_max_distance, medians
     assert medians["euler"] > 60, medians
 
