@@ -37,7 +37,7 @@ from coopd.daemon.threads import ThreadPriorities, WorkerProgress
 from coopd.geometry import euler_to_matrix, matrix_to_quat
 from coopd.grid import OccupancyGrid
 from coopd.io.atomic import write_atomic
-from coopd.mapping import CameraMount, FrameRejected, Intrinsics, Mapper, Pose
+from coopd.mapping import CameraMount, FrameRejected, Mapper, load_kernels
 from coopd.mapping.association import FrameAssociator
 from coopd.sharing import swarmkey
 from coopd.sharing import versions as map_versions
@@ -474,12 +474,7 @@ class Daemon:
         """Load (or compile) the mapping, codec and merging kernels before the budget measures its
         baseline and before the first frame counts against latency."""
         t0 = time.monotonic()
-        m = Mapper(replace(self.config.mapping, threads=1))
-        intr = Intrinsics.from_fov(32, 24, 87.0)
-        forward = Pose(np.zeros(3), np.array([0.5, -0.5, 0.5, -0.5]))
-        m.integrate(np.full((24, 32), 2000, np.uint16), intr, forward)
-        m.close()
-        grid = decode_map(encode_map(m.grid, MapMeta(self.vehicle_id, 1)))[0]
+        grid = decode_map(encode_map(load_kernels(self.config.mapping), MapMeta(self.vehicle_id, 1)))[0]
         grid.counts()
         if self.merge_fn is not None:
             room = OccupancyGrid.empty((40, 40, 12), self.config.mapping.resolution)

@@ -3,7 +3,7 @@
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -226,3 +226,16 @@ class Mapper:
         list(self._pool.map(trace, range(n_threads)))
         results = list(self._pool.map(apply, range(n_threads)))
         return sum(r[0] for r in results), sum(r[1] for r in results)
+
+
+def load_kernels(config: MapperConfig | None = None) -> OccupancyGrid:
+    """Load (or, on an empty numba cache, compile) the integration kernels by mapping one small
+    frame into a throwaway grid, so that the first real frame is not delayed by seconds of JIT.
+    Returns that grid (a few walls and free cells) for warming up what consumes maps."""
+    m = Mapper(replace(config or MapperConfig(), threads=1))
+    try:
+        forward = Pose(np.zeros(3), np.array([0.5, -0.5, 0.5, -0.5]))
+        m.integrate(np.full((24, 32), 2000, np.uint16), Intrinsics.from_fov(32, 24, 87.0), forward)
+    finally:
+        m.close()
+    return m.grid

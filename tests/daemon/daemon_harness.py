@@ -123,6 +123,15 @@ class Sim:
         return map_accuracy(grid, self.to_world(i, origin_fc_enu), gt, gt_origin)
 
 
+def in_process_memory_mb(headroom_mb: int = 512) -> int:
+    """memory_mb for a Daemon built inside this test process: the budget counts the process' RSS at
+    start as the daemon's baseline, and pytest's RSS grows with every test module it has imported and
+    run, so a fixed 512 MiB leaves nothing for grids late in a full run."""
+    from coopd.daemon.budget import MIB, read_rss
+
+    return read_rss() // MIB + headroom_mb
+
+
 def swarm_key_file(workdir: Path) -> Path:
     """The swarm key every daemon of one test shares (made with coopctl's key format once)."""
     from coopd.cli.key_commands import key_file_text

@@ -15,7 +15,14 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from daemon_harness import NotifyListener, port_block, swarm_key_file, wait_until, workdir
+from daemon_harness import (
+    NotifyListener,
+    in_process_memory_mb,
+    port_block,
+    swarm_key_file,
+    wait_until,
+    workdir,
+)
 
 from coopd.daemon import control
 from coopd.daemon.budget import MemoryBudget
@@ -36,7 +43,8 @@ def _config(wd, **daemon_keys):
         "vehicle": {"mavlink": f"udpin:127.0.0.1:{mav}"},
         "camera": {"source": f"socket:{wd}/no-camera.sock"},
         "sharing": {"enabled": False},
-        "daemon": {"state_dir": str(wd / "state"), "control_socket": str(wd / "control.sock"), **daemon_keys},
+        "daemon": {"state_dir": str(wd / "state"), "control_socket": str(wd / "control.sock"),
+                   "memory_mb": in_process_memory_mb(), **daemon_keys},
     })
 
 
@@ -78,16 +86,9 @@ def test_second_daemon_on_a_served_control_socket_refuses_to_start(wd):
 
 
 # ---------------------------------------------------------------------------------- control, notify
-def _budget_above_current_rss(extra_mb: int = 400) -> int:
-    """A budget with room for grids whatever this (shared, long-lived) pytest process holds."""
-    with open("/proc/self/statm") as f:
-        rss = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    return (rss >> 20) + extra_mb
-
-
 @pytest.mark.parametrize("merging", ["this build", "not in the build"])
 def test_commands_without_a_vehicle(wd, merging):
-    budget_mb = _budget_above_current_rss()
+    budget_mb = in_process_memory_mb(400)
     d = Daemon(_config(wd, memory_mb=budget_mb), merge_fn=FROM_BUILD if merging == "this build" else None)
     d.start()
     runner = threading.Thread(target=d.run, daemon=True)
@@ -602,7 +603,8 @@ def test_maps_evicted_from_the_store_leave_no_checkpoint_to_come_back(tmp_path):
         "camera": {"source": f"socket:{tmp_path}/no-camera.sock"},
         "sharing": {"listen_host": "127.0.0.1", "port": 21171,
                     "swarm_key_file": str(swarm_key_file(tmp_path))},
-        "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock")},
+        "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock"),
+                   "memory_mb": in_process_memory_mb()},
     })
     d = Daemon(cfg)
     try:

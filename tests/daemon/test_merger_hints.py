@@ -148,7 +148,7 @@ def test_unchanged_edges_are_not_published_again(chain):
 
 
 def _daemon_config(tmp_path, **merging):
-    from daemon_harness import swarm_key_file
+    from daemon_harness import in_process_memory_mb, swarm_key_file
 
     from coopd.daemon.config import from_dict
 
@@ -158,7 +158,8 @@ def _daemon_config(tmp_path, **merging):
         "sharing": {"enabled": True, "listen_host": "127.0.0.1", "port": 21161,
                     "swarm_key_file": str(swarm_key_file(tmp_path))},
         "merging": merging,
-        "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock")},
+        "daemon": {"state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "control.sock"),
+                   "memory_mb": in_process_memory_mb()},
     })
 
 

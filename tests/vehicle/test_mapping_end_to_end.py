@@ -10,7 +10,7 @@ import pytest
 from sim_helpers import pose_errors, wait_until
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
-from coopd.mapping import Intrinsics, Mapper, MapperConfig, Pose
+from coopd.mapping import Mapper, MapperConfig, load_kernels
 from coopd.mapping.association import FrameAssociator
 from coopd.vehicle import LinkConfig, VehicleLink
 from firmware_sim.accuracy import map_accuracy
@@ -28,20 +28,10 @@ SPEED = 2.0
 WHITE = NoiseConfig(drift_xy_m_s=0.0, drift_z_m_s=0.0, drift_yaw_rad_s=0.0)
 
 
-def warm_up_kernels():
-    """Load (or compile) the numba kernels before the clock starts, as the daemon does at boot."""
-    m = Mapper(MapperConfig())
-    m.integrate(
-        np.full((120, 160), 2000, np.uint16),
-        Intrinsics.from_fov(160, 120, 87.0),
-        Pose(np.zeros(3), np.array([0.5, -0.5, 0.5, -0.5])),
-    )
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("world_name, noise", CASES)
 def test_route_maps_the_world(world_name, noise, tmp_path, udp_port):
-    warm_up_kernels()
+    load_kernels()  # before the clock starts, as the daemon does at boot
     world = build_world(world_name, 0)
     sim = Simulation(
         world,
