@@ -2,7 +2,7 @@
 """Long fuzz campaigns over coopd's outward-facing parsers (the harness of tests/fuzz, time-boxed).
 
 Usage: scripts/fuzz_campaign.py (--all | TARGET ...) [--seconds N] [--cases N] [--seed S] [--out DIR]
-                                [--engine mutation|atheris]
+                                [--engine mutation|atheris] [--jobs N]
        scripts/fuzz_campaign.py TARGET --replay FILE      re-run one saved input, print its finding
 Findings (failing inputs + traceback) go to DIR/<target>/, survivors to DIR/<target>/corpus/ (the
 next campaign starts from them), and a summary of cases and findings to DIR/summary.json.
@@ -58,6 +58,29 @@ def campaign(name: str, seconds: float, seed: int, out: Path, workdir: str, case
                          for d, msg in result.findings]}
 
 
+def _shard(args: tuple) -> dict:
+    """One process' share of a campaign, in its own working directory (its own sockets)."""
+    name, seconds, seed, out, cases = args
+    logging.basicConfig(level=logging.CRITICAL)
+    with tempfile.TemporaryDirectory(prefix="fz") as workdir:
+        return campaign(name, seconds, seed, out, workdir, cases)
+
+
+def sharded_campaign(name: str, seconds: float, seed: int, out: Path, cases: int | None, jobs: int) -> dict:
+    """The campaign split over `jobs` processes, shard i seeded seed + i and given an equal share of the
+    cases: the socket targets mostly wait on their peers, so shards add cases per second."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    shares = [None if cases is None else cases // jobs + (i < cases % jobs) for i in range(jobs)]
+    with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
+        parts = list(pool.map(_shard, [(name, seconds, seed + i, out, shares[i]) for i in range(jobs)]))
+    n = sum(p["cases"] for p in parts)
+    wall = max(p["seconds"] for p in parts)
+    return {"cases": n, "seconds": wall, "cases_per_second": round(n / max(wall, 1e-9)), "jobs": jobs,
+            "findings": [f for p in parts for f in p["findings"]]}
+
+
 def atheris_campaign(name: str, seconds: float, out: Path) -> dict:
     """Run one in-process target under atheris (coverage-guided libFuzzer) in a child; its summary entry."""
     target_dir = out / name
@@ -110,6 +133,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/fuzz"))
     ap.add_argument("--engine", choices=("mutation", "atheris"), default="mutation",
                     help="atheris: coverage-guided, in-process targets only (socket targets use mutation)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="mutation engine: split each target's campaign over N processes (seeds S..S+N-1)")
     ap.add_argument("--replay", type=Path, help="re-run one saved input against the (single) target")
     ap.add_argument("--verbose", action="store_true", help="show the parsers' own log messages")
     args = ap.parse_args(argv)
@@ -132,6 +157,8 @@ def main(argv=None) -> int:
             engine = args.engine if name in ATHERIS_TARGETS else "mutation"
             if engine == "atheris":
                 entry = atheris_campaign(name, args.seconds, args.out)
+            elif args.jobs > 1:
+                entry = sharded_campaign(name, args.seconds, seed, args.out, args.cases, args.jobs)
             else:
                 entry = campaign(name, args.seconds, seed, args.out, workdir, args.cases)
             finished = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())

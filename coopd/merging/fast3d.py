@@ -58,32 +58,56 @@ def _nh_mean(img, x, y, z, nr):
 
 
 @nb.njit(**_JIT)
-def fast3d_mask(img, known, mask, n, th, nr, both):
-    """Algorithm 2: True where a known cell passes rFAST on any of the three planes."""
-    mx, my, mz = img.shape
-    m = mask.shape[0]
+def _rings_pass(flat, c, cube, rings, ring, s, th, n, both):
+    """rFAST on the three planes' rings around flat index c of the zero-padded image: each sample is
+    the mean of the cube offsets around it (getCellNhMean), the centre too."""
+    m = rings.shape[1]
+    ip = 0.0
+    for q in range(cube.shape[0]):
+        ip += flat[c + cube[q]]
+    ip /= cube.shape[0]
+    for plane in range(3):
+        for i in range(m):
+            acc = 0.0
+            for q in range(cube.shape[0]):
+                acc += flat[c + rings[plane, i] + cube[q]]
+            ring[i] = acc / cube.shape[0]
+        if rfast(ip, ring, s, th, n, 1.0) or (both and rfast(ip, ring, s, th, n, -1.0)):
+            return True
+    return False
+
+
+@nb.njit(**_JIT)
+def _fast3d_cells(flat, cells, cube, rings, n, th, both):
+    """Algorithm 2 over the given flat indices of the padded image: True where a cell passes rFAST on
+    any of the three planes."""
+    m = rings.shape[1]
     s = m // 4
+    ring = np.empty(m)
+    out = np.zeros(cells.shape[0], dtype=np.bool_)
+    for i in range(cells.shape[0]):
+        out[i] = _rings_pass(flat, cells[i], cube, rings, ring, s, th, n, both)
+    return out
+
+
+def fast3d_mask(img: np.ndarray, known: np.ndarray, mask: np.ndarray, n: int, th: float, nr: int,
+                both: bool) -> np.ndarray:
+    """Algorithm 2: True where a known cell passes rFAST on the XY, ZX or YZ plane. The image is padded
+    with zeros (outside reads 0) so that every ring and neighbourhood sample is one flat offset."""
+    pad = int(np.abs(mask).max()) + nr
+    padded = np.pad(np.asarray(img, dtype=np.float64), pad)
+    strides = np.array(padded.strides) // padded.itemsize
+    r = np.arange(-nr, nr + 1)
+    cube = (np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3) @ strides).astype(np.int64)
+    a, b, c = mask[:, 0], mask[:, 1], mask[:, 2]
+    planes = [np.stack(p, 1) for p in ((a, b, c), (c, a, b), (b, c, a))]  # XY, ZX, YZ as in the thesis
+    rings = np.stack([p @ strides for p in planes]).astype(np.int64)
+    idx = np.argwhere(known)
+    cells = ((idx + pad) @ strides).astype(np.int64)
     out = np.zeros(img.shape, dtype=np.bool_)
-    ixy = np.empty(m)
-    izx = np.empty(m)
-    iyz = np.empty(m)
-    for x in range(mx):
-        for y in range(my):
-            for z in range(mz):
-                if not known[x, y, z]:
-                    continue
-                ip = _nh_mean(img, x, y, z, nr)
-                for i in range(m):
-                    a, b, c = mask[i, 0], mask[i, 1], mask[i, 2]
-                    ixy[i] = _nh_mean(img, x + a, y + b, z + c, nr)
-                    izx[i] = _nh_mean(img, x + c, y + a, z + b, nr)
-                    iyz[i] = _nh_mean(img, x + b, y + c, z + a, nr)
-                hit = (rfast(ip, ixy, s, th, n, 1.0) or rfast(ip, izx, s, th, n, 1.0)
-                       or rfast(ip, iyz, s, th, n, 1.0))
-                if not hit and both:
-                    hit = (rfast(ip, ixy, s, th, n, -1.0) or rfast(ip, izx, s, th, n, -1.0)
-                           or rfast(ip, iyz, s, th, n, -1.0))
-                out[x, y, z] = hit
+    if len(idx):
+        hits = _fast3d_cells(padded.reshape(-1), cells, cube, rings, n, float(th), bool(both))
+        out[tuple(idx[hits].T)] = True
     return out
 
 

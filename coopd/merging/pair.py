@@ -4,7 +4,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..geometry import invert, rotation_angle_deg
 from ..grid import OccupancyGrid, transform_grid
@@ -16,7 +15,7 @@ from .mtm import euler_eq33
 from .params import MergeParams, coopd_params
 from .preprocess import despeckle
 from .ransac import filter_correspondences
-from .refine import icp, subcell_shift
+from .refine import OccupiedCells, icp, subcell_shift
 from .validation import Agreement, MapSummary, agreement, summarise
 
 AMBIGUOUS = "ambiguous"
@@ -73,7 +72,8 @@ class PreparedMap:
 
     grid: OccupancyGrid
     summary: MapSummary
-    tree: cKDTree | None = None
+    occupied: OccupiedCells | None = None
+    """The grid's occupied cells, refinement's target."""
     features: MapFeatures | None = None
     level: np.ndarray | None = None
     """Rotation levelling the map (level.py) and the levelled grid the yaw search runs on."""
@@ -90,9 +90,9 @@ def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = Non
     tm["despeckle"] = tm.get("despeckle", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
     summary = summarise(grid, params.occupied_threshold, params.validation_max_points)
-    tree = cKDTree(summary.occupied_m) if params.refine and len(summary.occupied_m) else None
+    occupied = OccupiedCells(grid.cells >= params.occupied_threshold, grid.offset, grid.resolution)
     tm["summarise"] = tm.get("summarise", 0.0) + time.perf_counter() - t0
-    p = PreparedMap(grid, summary, tree, None, None, grid)
+    p = PreparedMap(grid, summary, occupied, None, None, grid)
     if not lazy:
         complete(p, params, tm)
     return p
@@ -133,10 +133,10 @@ def _refine_points(b: PreparedMap, params: MergeParams) -> np.ndarray:
 
 def _refined(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) -> Candidate:
     """The hypothesis pulled onto a's occupied cells by ICP (unchanged when refinement is off)."""
-    if not (params.refine and a.tree is not None and len(b.summary.occupied_m)):
+    if not (params.refine and len(a.summary.occupied_m) and len(b.summary.occupied_m)):
         return c
     src = _refine_points(b, params)
-    t, frac = icp(a.tree, a.summary.occupied_m, src, c.transform, params.refine_iterations, a.grid.resolution)
+    t, frac = icp(a.occupied, src, c.transform, params.refine_iterations)
     inliers = int(round(frac * len(src))) if c.source in ("search", "given") else c.inliers
     return Candidate(t, inliers, c.source)
 
@@ -146,8 +146,8 @@ def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) 
     for the winner, since a shift within a cell does not change how validation ranks hypotheses."""
     if not (params.refine and params.refine_subcell and len(b.summary.occupied_m)):
         return c
-    t = subcell_shift(a.grid.cells >= params.occupied_threshold, a.grid.offset, a.grid.resolution,
-                      _refine_points(b, params), c.transform)
+    t = subcell_shift(a.occupied.occupied, a.grid.offset, a.grid.resolution, _refine_points(b, params),
+                      c.transform)
     return Candidate(t, c.inliers, c.source)
 
 

@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
-from scipy import ndimage
 
 from ..grid import OccupancyGrid
 from .params import MergeParams
@@ -36,78 +35,119 @@ def intensity(cells: np.ndarray) -> np.ndarray:
     return np.where(cells >= 0, cells.astype(np.float32) * np.float32(2.55), np.float32(0.0))
 
 
-def dilate(img: np.ndarray, radius: int = 1, iterations: int = 1) -> np.ndarray:
-    """Grey dilation with a cube of half-size radius (windows clipped at the borders)."""
-    img = np.asarray(img, dtype=np.float32)
+def _extreme(img: np.ndarray, radius: int, iterations: int, pick) -> np.ndarray:
+    """pick (np.maximum or np.minimum) over a cube of half-size radius, one axis at a time; windows are
+    clipped at the borders. Whole-slab array operations: no per-line overhead, any dtype."""
+    img = np.asarray(img)
     for _ in range(iterations):
         for axis in range(3):
-            img = ndimage.maximum_filter1d(img, 2 * radius + 1, axis=axis, mode="nearest")
+            src, out = img, img.copy()
+            n = img.shape[axis]
+            for d in range(1, radius + 1):
+                head = tuple(slice(0, n - d) if a == axis else slice(None) for a in range(3))
+                tail = tuple(slice(d, n) if a == axis else slice(None) for a in range(3))
+                pick(out[head], src[tail], out=out[head])
+                pick(out[tail], src[head], out=out[tail])
+            img = out
     return img
+
+
+def dilate(img: np.ndarray, radius: int = 1, iterations: int = 1) -> np.ndarray:
+    """Grey dilation with a cube of half-size radius (windows clipped at the borders)."""
+    return _extreme(img, radius, iterations, np.maximum)
 
 
 def erode(img: np.ndarray, radius: int = 1, iterations: int = 1) -> np.ndarray:
     """Grey erosion with a cube of half-size radius (windows clipped at the borders)."""
+    return _extreme(img, radius, iterations, np.minimum)
+
+
+def axis_operator(n: int, weights: np.ndarray, f: int) -> np.ndarray:
+    """(n, max(1, n // f)) float32 matrix carrying one axis of n cells through a convolution with the
+    symmetric weights, renormalised to the weights inside the axis, and then through means of f-cell
+    blocks (cells past the end read 0)."""
+    weights = np.asarray(weights, dtype=np.float64)
+    r = (len(weights) - 1) // 2
+    m = max(1, n // f)
+    op = np.zeros((n, m))
+    for j in range(m):
+        for i in range(j * f, min(n, j * f + f)):
+            lo, hi = max(0, i - r), min(n, i + r + 1)
+            w = weights[lo - i + r: hi - i + r]
+            op[lo:hi, j] += w / (w.sum() * f)
+    return op.astype(np.float32)
+
+
+@nb.njit(**_JIT)
+def _apply_leading(src, axis, op):
+    """src (3D, float32) with axis 0 or 1 carried through the banded matrix op (n, m)."""
+    n, m = op.shape
+    mx = m if axis == 0 else src.shape[0]
+    my = m if axis == 1 else src.shape[1]
+    mz = src.shape[2]
+    out = np.zeros((mx, my, mz), dtype=np.float32)
+    for j in range(m):
+        for k in range(n):
+            w = op[k, j]
+            if w == 0.0:
+                continue
+            if axis == 0:
+                for y in range(my):
+                    for z in range(mz):
+                        out[j, y, z] += w * src[k, y, z]
+            else:
+                for x in range(mx):
+                    for z in range(mz):
+                        out[x, j, z] += w * src[x, k, z]
+    return out
+
+
+def smooth(img: np.ndarray, weights: np.ndarray, f: int = 1) -> np.ndarray:
+    """img convolved with the symmetric weights along each axis (near the borders renormalised to the
+    weights inside: outside is no evidence, not zero intensity), then means of f^3 blocks. The last
+    axis, short and contiguous, is one matrix product; the others are banded sums of whole slabs."""
     img = np.asarray(img, dtype=np.float32)
-    for _ in range(iterations):
-        for axis in range(3):
-            img = ndimage.minimum_filter1d(img, 2 * radius + 1, axis=axis, mode="nearest")
+    for axis in range(3):
+        op = axis_operator(img.shape[axis], weights, f)
+        img = img @ op if axis == 2 else _apply_leading(img, axis, op)
     return img
+
+
+def gaussian_weights(radius: int, sigma: float) -> np.ndarray:
+    """Gaussian of standard deviation sigma cells, truncated at radius cells."""
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    return np.exp(-0.5 * (x / sigma) ** 2)
 
 
 def gaussian(img: np.ndarray, radius: int = 3, sigma: float = 1.0, iterations: int = 1) -> np.ndarray:
     """Separable Gaussian smoothing truncated at radius cells; near the borders the weights inside
     the image are renormalised (outside is no evidence, not zero intensity)."""
-    x = np.arange(-radius, radius + 1, dtype=np.float64)
-    w = np.exp(-0.5 * (x / sigma) ** 2)
     img = np.asarray(img, dtype=np.float32)
     for _ in range(iterations):
-        for axis in range(3):
-            n = img.shape[axis]
-            shape = [1, 1, 1]
-            shape[axis] = n
-            norm = ndimage.correlate1d(np.ones(n), w, mode="constant").reshape(shape).astype(np.float32)
-            img = ndimage.correlate1d(img, w.astype(np.float32), axis=axis, mode="constant") / norm
+        img = smooth(img, gaussian_weights(radius, sigma))
     return img
 
 
-@nb.njit(**_JIT)
-def _block_mean(img, known, f, out, out_known):
-    """Average f^3 blocks of img; a block is known when any of its cells is."""
-    for i in range(out.shape[0]):
-        for j in range(out.shape[1]):
-            for k in range(out.shape[2]):
-                acc = 0.0
-                kn = False
-                for a in range(f):
-                    for b in range(f):
-                        for c in range(f):
-                            acc += img[i * f + a, j * f + b, k * f + c]
-                            kn = kn or known[i * f + a, j * f + b, k * f + c]
-                out[i, j, k] = acc / (f * f * f)
-                out_known[i, j, k] = kn
-
-
 def downsample(img: np.ndarray, known: np.ndarray, radius: int = 1):
-    """Block means with factor 2*radius per axis (eq. 34); radius 0 leaves the image as it is."""
+    """Block means with factor 2*radius per axis (eq. 34); a block is known when any of its cells is.
+    Radius 0 leaves the image as it is."""
     f = max(1, 2 * radius)
-    shape = tuple(max(1, s // f) for s in img.shape)
-    pad = [(0, max(0, sh * f - s)) for sh, s in zip(shape, img.shape, strict=True)]
-    if any(p[1] for p in pad):
-        img, known = np.pad(img, pad), np.pad(known, pad)
-    out = np.empty(shape, dtype=np.float32)
-    out_known = np.empty(shape, dtype=np.bool_)
-    _block_mean(img, known, f, out, out_known)
-    return out, out_known
+    return smooth(img, np.ones(1), f), smooth(known, np.ones(1), f) > 0
 
 
 def preprocess(grid: OccupancyGrid, params: MergeParams) -> FeatureImage:
-    """§8.1 in order: dilate, erode, Gaussian, downsample; returns the image features are found on."""
-    img = intensity(grid.cells)
-    img = dilate(img, params.dilate_radius, params.dilate_iterations)
-    img = erode(img, params.erode_radius, params.erode_iterations)
-    img = gaussian(img, params.gaussian_radius, params.gaussian_sigma, params.gaussian_iterations)
-    img, known = downsample(img, grid.cells != -1, params.downsample_radius)
+    """§8.1 in order: dilate, erode, Gaussian, downsample; returns the image features are found on.
+    Morphology runs on the int8 cells (intensity is monotonic in occupancy, so max and min commute
+    with it), and the last Gaussian pass is fused with the downsampling (both are separable)."""
+    closed = erode(dilate(grid.cells, params.dilate_radius, params.dilate_iterations),
+                   params.erode_radius, params.erode_iterations)
+    img = gaussian(intensity(closed), params.gaussian_radius, params.gaussian_sigma,
+                   params.gaussian_iterations - 1)
     f = max(1, 2 * params.downsample_radius)
+    weights = gaussian_weights(params.gaussian_radius, params.gaussian_sigma) if params.gaussian_iterations \
+        else np.ones(1)
+    img = smooth(img, weights, f)
+    known = smooth(grid.cells != -1, np.ones(1), f) > 0
     origin = (grid.offset + (f - 1) / 2.0) * grid.resolution
     return FeatureImage(img, known, origin, f * grid.resolution)
 

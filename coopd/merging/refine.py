@@ -10,9 +10,10 @@ cells, that puts the moved points highest on a Gaussian-smoothed image of the ta
 cells, where sliding along a wall changes nothing and edges and corners decide.
 """
 
+from dataclasses import dataclass
+
 import numba as nb
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..geometry import apply
 from .mtm import estimate
@@ -23,22 +24,91 @@ SUBCELL_STEPS = np.arange(-4, 5) / 4.0
 """Shifts tried per axis by subcell_shift, in cells."""
 
 
-def icp(tree: cKDTree, target: np.ndarray, source: np.ndarray, t0: np.ndarray, iterations: int,
-        resolution: float, yaw_only: bool = False) -> tuple[np.ndarray, float]:
-    """(refined T, inlier fraction): source points (b frame) pulled onto the tree's points (a frame)."""
+@nb.njit(**_JIT)
+def _nearest_cells(occupied, offset, points, inv_res, max_cells, out_idx, out_dist):
+    """Nearest occupied cell of each point (cell-index units) within max_cells, searched in shells of
+    growing Chebyshev radius around the point's cell until no farther shell can hold a nearer one."""
+    mx, my, mz = occupied.shape
+    for p in range(points.shape[0]):
+        kx = points[p, 0] * inv_res - offset[0]
+        ky = points[p, 1] * inv_res - offset[1]
+        kz = points[p, 2] * inv_res - offset[2]
+        cx, cy, cz = int(np.floor(kx + 0.5)), int(np.floor(ky + 0.5)), int(np.floor(kz + 0.5))
+        best = np.inf
+        bx = by = bz = -1
+        s = 0
+        while True:
+            bound = max(0.0, s - 0.5)  # the point lies within half a cell of its cell's centre
+            if bound > max_cells or bound * bound >= best:
+                break
+            for dx in range(-s, s + 1):
+                x = cx + dx
+                if x < 0 or x >= mx:
+                    continue
+                for dy in range(-s, s + 1):
+                    y = cy + dy
+                    if y < 0 or y >= my:
+                        continue
+                    edge = dx == -s or dx == s or dy == -s or dy == s
+                    step = 1 if edge else max(1, 2 * s)
+                    for dz in range(-s, s + 1, step):
+                        z = cz + dz
+                        if z < 0 or z >= mz or not occupied[x, y, z]:
+                            continue
+                        d = (x - kx) ** 2 + (y - ky) ** 2 + (z - kz) ** 2
+                        if d < best:
+                            best, bx, by, bz = d, x, y, z
+            s += 1
+        if best <= max_cells * max_cells:
+            out_dist[p] = np.sqrt(best)
+            out_idx[p, 0], out_idx[p, 1], out_idx[p, 2] = bx, by, bz
+        else:
+            out_dist[p] = np.inf
+
+
+@dataclass(frozen=True)
+class OccupiedCells:
+    """A grid's occupied cells for nearest-neighbour queries: ICP's target. Cell centres lie on a
+    lattice, so the nearest one is found by visiting the cells around a point, nearest shell first; a
+    k-d tree over a lattice is slow (every query meets many equidistant points)."""
+
+    occupied: np.ndarray
+    offset: np.ndarray
+    resolution: float
+
+    def nearest(self, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """(within, centres): which points have an occupied cell centre within radius (metres), and
+        the nearest such centre of each (rows of the others are undefined)."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        idx = np.empty((len(points), 3), dtype=np.int64)
+        dist = np.empty(len(points))
+        _nearest_cells(self.occupied, np.asarray(self.offset, dtype=np.int64), points, 1.0 / self.resolution,
+                       radius / self.resolution, idx, dist)
+        return np.isfinite(dist), (idx + self.offset) * self.resolution
+
+
+def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: int,
+        yaw_only: bool = False) -> tuple[np.ndarray, float]:
+    """(refined T, inlier fraction): source points (b frame) pulled onto the target's occupied cell
+    centres (a frame)."""
     t = np.asarray(t0, dtype=np.float64).copy()
     coarse = max(1, iterations // 2)
     held = np.full(max(0, iterations - coarse), 1.5)
-    radii = np.concatenate([np.geomspace(6.0, 1.5, coarse), held]) * resolution
+    radii = np.concatenate([np.geomspace(6.0, 1.5, coarse), held]) * target.resolution
     frac = 0.0
-    for r in radii:
-        moved = apply(t, source)
-        d, j = tree.query(moved, distance_upper_bound=r)
-        ok = np.isfinite(d)
+    previous = None
+    for k, r in enumerate(radii):
+        ok, nearest = target.nearest(apply(t, source), r)
         frac = float(ok.mean()) if len(ok) else 0.0
         if ok.sum() < 10:
             break
-        t = estimate(source[ok], target[j[ok]], yaw_only)
+        pairs = np.where(ok[:, None], nearest, np.nan)
+        if previous is not None and np.array_equal(pairs, previous, equal_nan=True):
+            if k >= coarse:  # same pairs under the held radius: every further step repeats this one
+                break
+            continue  # same pairs, same estimate
+        previous = pairs
+        t = estimate(source[ok], nearest[ok], yaw_only)
     return t, frac
 
 

@@ -2,11 +2,10 @@
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from coopd.geometry import apply, invert, rigid, rotation_z
 from coopd.grid import transform_grid
-from coopd.merging.refine import icp, subcell_shift
+from coopd.merging.refine import OccupiedCells, icp, subcell_shift
 
 
 @pytest.fixture(scope="module")
@@ -22,6 +21,10 @@ def _occupied_m(grid):
     return (np.argwhere(grid.cells >= 50) + grid.offset) * grid.resolution
 
 
+def _target(grid):
+    return OccupiedCells(grid.cells >= 50, grid.offset, grid.resolution)
+
+
 def _displacement(t, truth, points):
     return float(np.linalg.norm(apply(t, points) - apply(truth, points), axis=1).mean())
 
@@ -32,8 +35,7 @@ def test_subcell_shift_brings_a_transform_a_cell_off_back_onto_the_truth(lossles
     src = _occupied_m(b)[::10]
     start = truth.copy()
     start[:3, 3] += slide
-    target = _occupied_m(a)
-    t, _ = icp(cKDTree(target), target, src, start, 28, a.resolution)
+    t, _ = icp(_target(a), src, start, 28)
     out = subcell_shift(a.cells >= 50, a.offset, a.resolution, src, t)
     print(f"start {slide}: ICP ends {_displacement(t, truth, src):.3f} m off, the shift "
           f"{_displacement(out, truth, src):.3f} m")
@@ -45,11 +47,30 @@ def test_icp_alone_can_stop_a_cell_away(lossless_copy):
     is a local minimum of point-to-point ICP (every wall cell has a partner at distance 0)."""
     a, b, truth = lossless_copy
     src = _occupied_m(b)[::10]
-    target = _occupied_m(a)
     worst = 0.0
     for slide in ([0.1, 0.0, 0.0], [0.0, -0.1, 0.0], [0.1, 0.1, 0.0], [0.0, 0.0, 0.1]):
         start = truth.copy()
         start[:3, 3] += slide
-        t, _ = icp(cKDTree(target), target, src, start, 28, a.resolution)
+        t, _ = icp(_target(a), src, start, 28)
         worst = max(worst, _displacement(t, truth, src))
     assert worst >= 0.5 * a.resolution
+
+
+def test_nearest_occupied_cell_is_as_near_as_a_kd_tree_finds(near_pair):
+    """The shell search finds, for every point, an occupied cell centre as near as the exact nearest
+    one (a k-d tree over all of them), and reports none beyond the radius."""
+    from scipy.spatial import cKDTree
+
+    a = near_pair.a
+    centres = _occupied_m(a)
+    rng = np.random.default_rng(3)
+    lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
+    near_walls = centres[::50] + rng.normal(0.0, 0.07, (len(centres[::50]), 3))
+    points = np.concatenate([rng.uniform(lo, hi, (3000, 3)), near_walls])
+    for radius in (0.15, 0.6):
+        within, nearest = _target(a).nearest(points, radius)
+        d_ref, _ = cKDTree(centres).query(points, distance_upper_bound=radius)
+        assert np.array_equal(within, np.isfinite(d_ref))
+        d = np.linalg.norm(nearest[within] - points[within], axis=1)
+        np.testing.assert_allclose(d, d_ref[within], atol=1e-9)
+        assert within.sum() > 500
