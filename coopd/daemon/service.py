@@ -195,6 +195,10 @@ def swarm_key(s) -> bytes | None:
 def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig:
     s = config.sharing
     key = swarm_key(s)
+    if not map_versions.clock_is_set():
+        log.warning("system clock reads %s, before it can have been set (no NTP or GPS time yet): peers' "
+                    "map versions are checked for order only, not against the clock, until it is",
+                    time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()))
     transport = TransportSettings(
         block_size=s.block_size,
         max_bytes=s.max_map_bytes,

@@ -8,6 +8,10 @@ A receiver accepts a version only if it is plausible: its epoch is not in the fu
 clock-skew allowance), not older than the epoch it holds for that vehicle, and within one epoch
 the counter does not jump further than a vehicle could map in days. A forged 2**64 - 1 is
 refused, and a forgery within the bounds holds only until the real vehicle starts a new epoch.
+
+A receiver whose own clock is not set (a companion computer without a real-time clock reads a date
+before CLOCK_SET_AFTER until NTP or GPS sets it) cannot tell the future: it checks the order of
+epochs and counters only, rather than refusing every peer's map as "from the future".
 """
 
 import time
@@ -18,6 +22,13 @@ MAX_EPOCH_AHEAD_S = 300.0
 """Clock skew tolerated between vehicles: an epoch further in the future is refused."""
 MAX_COUNTER_STEP = 1 << 24
 """Largest counter step within one epoch (16.7 M map versions: days of mapping at 30 frames/s)."""
+CLOCK_SET_AFTER = 1_767_225_600
+"""2026-01-01T00:00:00Z: a system clock reading earlier than this has not been set."""
+
+
+def clock_is_set(now: float | None = None) -> bool:
+    """Whether the system clock reads a plausible date (not a board's power-on default)."""
+    return (time.time() if now is None else now) >= CLOCK_SET_AFTER
 
 
 def compose(epoch: int, counter: int) -> int:
@@ -46,7 +57,7 @@ def refusal(version: int, held: int | None, now: float | None = None,
         return None
     epoch, counter = split(version)
     now = time.time() if now is None else now
-    if epoch > now + max_ahead_s:
+    if clock_is_set(now) and epoch > now + max_ahead_s:
         return f"version {version} has epoch {epoch}, {epoch - now:.0f} s in the future"
     if not held:
         return None

@@ -33,6 +33,19 @@ def test_plausible_versions(version, held, refused):
     assert (why is None) if refused is None else (refused in why), why
 
 
+def test_a_receiver_whose_clock_is_not_set_checks_order_only():
+    """A companion computer without a real-time clock boots in 1970: peers' maps stamped with today's
+    epoch are not "from the future" to it, while epochs going back and counter jumps still are."""
+    boot_default = 86_400.0  # 1970-01-02
+    today = versions.compose(now_epoch(), 5)
+    assert not versions.clock_is_set(boot_default) and versions.clock_is_set()
+    assert versions.refusal(today, None, now=boot_default) is None
+    assert versions.refusal(2**64 - 1, None, now=boot_default) is None  # nothing to bound it by ...
+    assert "went back" in versions.refusal(versions.compose(now_epoch() - 10, 9), today, now=boot_default)
+    assert "jumps" in versions.refusal(today + STEP + 1, today, now=boot_default)
+    assert "future" in versions.refusal(2**64 - 1, None)  # ... once the clock is set, refused again
+
+
 def send(svc, vid: int, message: bytes, source: str = "127.0.0.1") -> int:
     link = PeerLink.connect(*svc.address, settings(), vid, source=source)
     try:
