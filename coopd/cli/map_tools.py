@@ -17,13 +17,14 @@ def register(subparsers) -> None:
     sub = p.add_subparsers(dest="map_command", metavar="SUBCOMMAND", required=True)
 
     info = sub.add_parser("info", help="size, resolution, origin, cell counts, compression ratio")
-    info.add_argument("file", type=Path, help="a .cmap file (coopd or thesis map message)")
+    info.add_argument("file", type=Path,
+                      help="a .cmap file (coopd or thesis map message), or an OctoMap .bt / .ot file")
     info.add_argument("--json", action="store_true", help="print one JSON object")
     _limit_args(info)
     info.set_defaults(handler=run_info)
 
-    conv = sub.add_parser("convert", help="export to PLY, PNG, OctoMap .bt, or re-encode as .cmap")
-    conv.add_argument("file", type=Path, help="a .cmap file")
+    conv = sub.add_parser("convert", help="export to PLY, PNG, OctoMap .bt, or (re-)encode as .cmap")
+    conv.add_argument("file", type=Path, help="a .cmap file, or an OctoMap .bt / .ot file")
     conv.add_argument("--to", required=True, choices=FORMATS, help="output format")
     conv.add_argument("--z", type=float, default=None, metavar="METRES",
                       help="png only: horizontal slice at this height (map frame) instead of the top view")
@@ -36,7 +37,7 @@ def register(subparsers) -> None:
     merge = sub.add_parser("merge", help="merge maps into the first one's frame (no GPS, no initial guess); "
                                          "exit 3 when a map could not be merged")
     merge.add_argument("files", type=Path, nargs="+",
-                       help="two or more .cmap files; the first is the reference")
+                       help="two or more map files (.cmap, OctoMap .bt / .ot); the first is the reference")
     merge.add_argument("-o", "--output", type=Path, required=True, help="the merged global map (.cmap)")
     merge.add_argument("--json", action="store_true",
                        help="print the report as JSON: per input after the first, accepted, transform "
@@ -57,24 +58,31 @@ def _limits(args) -> DecodeLimits:
 
 
 def map_info(path: Path, limits: DecodeLimits) -> dict:
-    """Everything `map info` reports about a map file, as plain data."""
+    """Everything `map info` reports about a map file, as plain data (the message fields are None
+    for an OctoMap file, which has no message header)."""
+    from coopd.io.bt import is_octomap, parse_header, read_octomap
     from coopd.io.cmap import read_cmap_bytes
     from coopd.sharing.wire import decode_map, peek
 
     data = read_cmap_bytes(path, limits)
-    header = peek(data)
-    grid, meta = decode_map(data, limits)
+    if is_octomap(data):
+        octo = parse_header(data)
+        grid = read_octomap(data, limits.max_cells)
+        source = {"format": f"octomap {'.bt' if octo.binary else '.ot'} ({octo.tree_type})",
+                  "message_type": None, "format_version": None, "encoding": None, "vehicle_id": None,
+                  "map_version": None, "stamp": None}
+    else:
+        header = peek(data)
+        grid, meta = decode_map(data, limits)
+        source = {"format": "cmap", "message_type": header.message_type,
+                  "format_version": header.format_version, "encoding": header.encoding,
+                  "vehicle_id": meta.vehicle_id, "map_version": meta.version, "stamp": meta.stamp}
     counts = grid.counts()
     lo, hi = grid.bounds_m()
     return {
         "file": str(path),
         "file_bytes": len(data),
-        "message_type": header.message_type,
-        "format_version": header.format_version,
-        "encoding": header.encoding,
-        "vehicle_id": meta.vehicle_id,
-        "map_version": meta.version,
-        "stamp": meta.stamp,
+        **source,
         "shape": list(grid.shape),
         "cells": grid.size,
         "resolution_m": grid.resolution,
@@ -96,11 +104,14 @@ def run_info(args) -> int:
         print(json.dumps(info))
         return 0
     known_pct = 100.0 * info["known"] / info["cells"]
-    lines = [
-        f"file            {info['file']} ({info['file_bytes']} bytes)",
+    message = [
         f"message         type {info['message_type']} format {info['format_version']}, "
         f"encoding {info['encoding']}",
         f"vehicle         {info['vehicle_id']}, map version {info['map_version']}, stamp {info['stamp']}",
+    ] if info["format"] == "cmap" else [f"format          {info['format']}"]
+    lines = [
+        f"file            {info['file']} ({info['file_bytes']} bytes)",
+        *message,
         f"size            {' x '.join(map(str, info['shape']))} = {info['cells']} cells",
         f"resolution      {info['resolution_m']} m",
         f"origin          cell {tuple(info['origin_cells'])} at "
@@ -124,11 +135,11 @@ def default_output(path: Path, fmt: str, z: float | None) -> Path:
 
 
 def run_convert(args) -> int:
-    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top, load_cmap, save_cmap
+    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top, load_map, save_cmap
 
     if args.z is not None and args.to != "png":
         raise ValueError("--z applies to --to png only")
-    grid, meta = load_cmap(args.file, _limits(args))
+    grid, meta = load_map(args.file, _limits(args))
     out = args.output or default_output(args.file, args.to, args.z)
     if args.to == "ply":
         n = export_ply(grid, out)
@@ -150,19 +161,19 @@ def run_convert(args) -> int:
 
 def run_merge(args) -> int:
     """`coopctl map merge`: merge_all over the files, the global map saved, a report printed."""
-    from coopd.io import load_cmap, save_cmap
+    from coopd.io import load_map, save_cmap
     from coopd.merging import VARIANTS, merge_files
     from coopd.sharing.wire import MapMeta
 
     if len(args.files) < 2:
         raise ValueError("map merge needs at least two map files")
     limits = _limits(args)
-    first_meta = load_cmap(args.files[0], limits)[1]
+    first_meta = load_map(args.files[0], limits)[1]
 
     def save(grid, path):
         save_cmap(path, grid, MapMeta(first_meta.vehicle_id, first_meta.version, first_meta.stamp))
 
-    report = merge_files(args.files, args.output, lambda path: load_cmap(path, limits)[0], save,
+    report = merge_files(args.files, args.output, lambda path: load_map(path, limits)[0], save,
                          VARIANTS[args.variant]())
     if args.json:
         print(json.dumps(report))

@@ -279,6 +279,31 @@ class CmapTarget(WireTarget):
             raise Finding("load_cmap and decode_map disagree on the same bytes")
 
 
+class OctomapTarget(Target):
+    """io.bt.read_octomap (OctoMap .bt / .ot files from other robots): only ValueError; the grid it
+    returns never spans more than the cell limit."""
+
+    name = "octomap"
+
+    def seeds(self) -> list[bytes]:
+        from coopd.io.bt import bt_bytes
+
+        rng = random.Random(11)
+        ot = b"# Octomap OcTree file\nid OcTree\nsize {n}\nres 0.1\ndata\n"
+        root_leaf = ot.replace(b"{n}", b"1") + struct.pack("<fB", 0.5, 0)
+        one_child = ot.replace(b"{n}", b"2") + struct.pack("<fB", 0.5, 1) + struct.pack("<fB", -1.0, 0)
+        return [bt_bytes(sample_grid(rng)) for _ in range(4)] + [root_leaf, one_child]
+
+    def check(self, data: bytes) -> None:
+        from coopd.io.bt import read_octomap
+
+        with time_limit(CALL_LIMIT_S, "read_octomap"):
+            grid = expect_only(ValueError, "read_octomap", lambda: read_octomap(data, FUZZ_LIMITS.max_cells))
+        if grid is not None and grid.size > FUZZ_LIMITS.max_cells:
+            raise Finding(f"read_octomap: a grid of {grid.size} cells, over the limit of "
+                          f"{FUZZ_LIMITS.max_cells}")
+
+
 # -------------------------------------------------------------------------------------------- mtp
 MTP_BS = 64
 MTP_MAX_BYTES = 1 << 16
@@ -912,7 +937,8 @@ def make_target(name: str, directory):
         "codec": CodecTarget, "planes": PlanesTarget, "wire": WireTarget, "mtp": MtpTarget,
         "merge_result": MergeResultTarget,
         "camera_header": CameraHeaderTarget, "mavlink": MavlinkIngestTarget,
-        "cmap": lambda: CmapTarget(directory), "config": lambda: ConfigTarget(directory),
+        "cmap": lambda: CmapTarget(directory), "octomap": OctomapTarget,
+        "config": lambda: ConfigTarget(directory),
         "transport": TransportTarget, "control": lambda: ControlTarget(directory),
         "control_client": lambda: ControlClientTarget(directory),
         "camera_socket": lambda: CameraSocketTarget(directory), "mavlink_udp": MavlinkUdpTarget,
@@ -922,5 +948,5 @@ def make_target(name: str, directory):
     return factories[name]()
 
 
-TARGETS = ("codec", "planes", "wire", "merge_result", "cmap", "mtp", "transport", "camera_header",
+TARGETS = ("codec", "planes", "wire", "merge_result", "cmap", "octomap", "mtp", "transport", "camera_header",
            "camera_socket", "control", "control_client", "config", "mavlink", "mavlink_udp")
