@@ -235,7 +235,7 @@ class Daemon:
         self.started = time.monotonic()
         self.state = "starting"
         # The socket backend, not libsystemd's sd_notify: that one blocks on a full notify queue while
-        # holding the GIL, which froze every thread of the daemon, mapping included.
+        # holding the GIL, which froze every thread of the daemon, mapping included (notify.py).
         self.notifier = notifier if notifier is not None else Notifier("socket")
         found = find_merge_all() if merge_fn is FROM_BUILD else (merge_fn, None)
         self.merge_fn, self.merge_start_error = found
