@@ -8,6 +8,8 @@ daemon's status, dump-map, peers, merge-now), write the module and list it in GR
 import argparse
 import sys
 
+from coopd.version import add_version_option
+
 from . import daemon_commands, key_commands, map_tools
 
 GROUPS = (map_tools, daemon_commands, key_commands)
@@ -19,6 +21,7 @@ class CommandError(Exception):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="coopctl", description="Control and inspect coopd and its maps.")
+    add_version_option(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for group in GROUPS:
         group.register(sub)

@@ -15,6 +15,7 @@ import sys
 
 from coopd.daemon.config import DEFAULT_CONFIG_PATH, ConfigError, as_dict, from_dict, load_config
 from coopd.daemon.logs import setup_logging
+from coopd.version import add_version_option
 
 log = logging.getLogger("coopd.daemon")
 
@@ -39,6 +40,7 @@ OVERRIDES = (
 
 def parse_args(argv) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="coopd", description="Cooperative 3D occupancy mapping daemon.")
+    add_version_option(p)
     p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help=f"TOML file ({DEFAULT_CONFIG_PATH})")
     p.add_argument("--no-config", action="store_true", help="start from the built-in defaults, no file")
     for option, dest, kind, section, key, text in OVERRIDES:
