@@ -39,7 +39,11 @@ OVERRIDES = (
 
 
 def parse_args(argv) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="coopd", description="Cooperative 3D occupancy mapping daemon.")
+    p = argparse.ArgumentParser(
+        prog="coopd", description="Cooperative 3D occupancy mapping daemon.",
+        epilog=f"exit codes: {EXIT_OK} stopped by SIGTERM/SIGINT (final checkpoint written), "
+               f"{EXIT_START_FAILED} could not start, {EXIT_CONFIG} bad command line or configuration",
+    )
     add_version_option(p)
     p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help=f"TOML file ({DEFAULT_CONFIG_PATH})")
     p.add_argument("--no-config", action="store_true", help="start from the built-in defaults, no file")
