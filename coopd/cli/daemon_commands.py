@@ -6,39 +6,40 @@ and coopctl writes or converts it on its side, so the daemon never writes into t
 directories and needs no write access outside its StateDirectory.
 """
 
-import json
 import os
-import sys
 from pathlib import Path
 
 from coopd.daemon import control
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET
 from coopd.sharing.wire_options import DecodeLimits
 
+from .map_tools import FORMATS, check_z, write_map, written_text
+from .output import DEFERRED, FAILED, OK, USAGE, CommandError, add_json_option, emit
+
 # Map decoding and exports (numpy, numba kernels) load only when dump-map runs: status, peers and
 # merge-now start fast and need no numba cache directory.
 
 SOCKET_ENV = "COOPD_SOCKET"
-FORMATS = ("cmap", "ply", "png", "bt")
-MERGE_EXIT = {"done": 0, "queued": 0, "failed": 1, "deferred": 2}
+MERGE_EXIT = {"done": OK, "queued": OK, "failed": FAILED, "deferred": DEFERRED}
 
 
 def register(subparsers) -> None:
     """Add status, peers, merge-now and dump-map to coopctl."""
     status = subparsers.add_parser("status", help="state of the running daemon")
-    status.add_argument("--json", action="store_true", help="print the daemon's status as one JSON object")
+    add_json_option(status, "print the daemon's status as one JSON object")
     _socket_args(status)
     status.set_defaults(handler=run_status)
 
     peers = subparsers.add_parser("peers", help="peer vehicles the daemon knows")
-    peers.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json_option(peers)
     _socket_args(peers)
     peers.set_defaults(handler=run_peers)
 
     merge = subparsers.add_parser(
-        "merge-now", help="merge the maps now (exit 0 done/queued, 1 failed, 2 deferred)"
+        "merge-now", help=f"merge the maps now (exit {OK.code} done/queued, {FAILED.code} failed, "
+                          f"{DEFERRED.code} deferred)"
     )
-    merge.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json_option(merge)
     _socket_args(merge, timeout=120.0)
     merge.set_defaults(handler=run_merge_now)
 
@@ -56,7 +57,7 @@ def register(subparsers) -> None:
         "--to",
         choices=FORMATS,
         default=None,
-        help="output format (default: from the file suffix, .cmap if unknown)",
+        help="output format (default: from the file suffix: .cmap, .ply, .png or .bt)",
     )
     dump.add_argument(
         "--z",
@@ -67,6 +68,7 @@ def register(subparsers) -> None:
     )
     dump.add_argument("--max-bytes", type=int, default=DecodeLimits.max_bytes, help="refuse larger maps")
     dump.add_argument("--max-cells", type=int, default=DecodeLimits.max_cells, help="refuse larger maps")
+    add_json_option(dump)
     _socket_args(dump, timeout=60.0)
     dump.set_defaults(handler=run_dump_map)
 
@@ -90,8 +92,8 @@ def _call(args, cmd: str, cmd_args: dict | None = None, max_blob_bytes: int = 0)
 # ------------------------------------------------------------------------------------------ status
 def run_status(args) -> int:
     result, _ = _call(args, "status")
-    print(json.dumps(result) if args.json else format_status(result))
-    return 0
+    emit(args, result, format_status(result))
+    return OK.code
 
 
 def format_status(s: dict) -> str:
@@ -269,33 +271,31 @@ def _duration(s) -> str:
 # ------------------------------------------------------------------------------------- peers, merge
 def run_peers(args) -> int:
     result, _ = _call(args, "peers")
-    if args.json:
-        print(json.dumps(result))
-        return 0
-    peers = result.get("peers") or []
+    emit(args, result, format_peers(result.get("peers") or []))
+    return OK.code
+
+
+def format_peers(peers: list) -> str:
+    """The table of `coopctl peers`."""
     if not peers:
-        print("no peers")
-        return 0
-    print(
+        return "no peers"
+    lines = [
         f"{'vehicle':>7}  {'address':<22} {'link':<6} {'map version':>11} {'map bytes':>10} {'last seen':>9}"
-    )
+    ]
     for p in peers:
-        print(
+        lines.append(
             f"{p.get('vehicle_id', '?'):>7}  {str(p.get('address', '-')):<22} "
             f"{'up' if p.get('connected') else 'down':<6} {p.get('map_version', '-'):>11} "
             f"{p.get('map_bytes', '-'):>10} {_num(p.get('last_seen_s'), 1):>7} s"
         )
-    return 0
+    return "\n".join(lines)
 
 
 def run_merge_now(args) -> int:
     result, _ = _call(args, "merge-now")
     outcome = str(result.get("outcome", "done"))
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print(f"merge-now: {outcome}" + (f": {result['detail']}" if result.get("detail") else ""))
-    return MERGE_EXIT.get(outcome, 1)
+    emit(args, result, f"merge-now: {outcome}" + (f": {result['detail']}" if result.get("detail") else ""))
+    return MERGE_EXIT.get(outcome, FAILED).code
 
 
 # ---------------------------------------------------------------------------------------- dump-map
@@ -305,49 +305,36 @@ def map_request(which: str) -> dict:
         return {"map": which}
     ident = which.removeprefix("peer:")
     if not ident.isdigit():
-        raise ValueError(f"map must be local, global or a peer's vehicle id, not {which!r}")
+        raise CommandError(f"map must be local, global or a peer's vehicle id, not {which!r}", USAGE)
     return {"map": "peer", "vehicle_id": int(ident)}
 
 
 def output_format(path: Path, to: str | None) -> str:
+    """--to, or the format the file's suffix names; an unknown suffix without --to is an error."""
     if to:
         return to
     suffix = path.suffix.lower().lstrip(".")
-    return suffix if suffix in FORMATS else "cmap"
+    if suffix not in FORMATS:
+        raise CommandError(f"{path}: cannot tell the output format from the suffix {path.suffix!r}: "
+                           f"name the file .{', .'.join(FORMATS)} or give --to", USAGE)
+    return suffix
 
 
 def run_dump_map(args) -> int:
-    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
-    from coopd.io.atomic import write_atomic
     from coopd.sharing.wire import decode_map
 
     fmt = output_format(args.output, args.to)
-    if args.z is not None and fmt != "png":
-        raise ValueError("--z applies to png output only")
+    check_z(fmt, args.z)
     limits = DecodeLimits(max_cells=args.max_cells, max_bytes=args.max_bytes)
     result, blob = _call(args, "dump-map", map_request(args.map), max_blob_bytes=limits.max_bytes)
     if blob is None:
         raise ValueError("the daemon sent no map")
     grid, meta = decode_map(blob, limits)  # validates (CRC, size) before anything is written
-    out = args.output
-    if fmt == "cmap":
-        write_atomic(out, blob)
-        detail = f"{len(blob)} bytes"
-    elif fmt == "ply":
-        detail = f"{export_ply(grid, out)} occupied points"
-    elif fmt == "png":
-        if args.z is None:
-            export_png_top(grid, out)
-            detail = "top view"
-        else:
-            export_png_slice(grid, out, args.z)
-            detail = f"slice at z = {args.z} m"
-    else:
-        detail = f"{export_bt(grid, out)} bytes"
+    written = write_map(grid, args.output, fmt, args.z, lambda: blob)
     counts = grid.counts()
-    print(
-        f"wrote {out} ({detail}): {result.get('map', args.map)} map of vehicle {meta.vehicle_id}, "
-        f"version {meta.version}, {' x '.join(map(str, grid.shape))} cells, {counts.known} known",
-        file=sys.stdout,
-    )
-    return 0
+    dumped = {**written, "map": result.get("map", args.map), "vehicle_id": meta.vehicle_id,
+              "map_version": meta.version, "shape": list(grid.shape), "known": counts.known}
+    shape = " x ".join(map(str, grid.shape))
+    emit(args, dumped, f"{written_text(written)}: {dumped['map']} map of vehicle {meta.vehicle_id}, "
+                       f"version {meta.version}, {shape} cells, {counts.known} known")
+    return OK.code

@@ -11,6 +11,8 @@ from pathlib import Path
 
 from coopd.sharing import swarmkey
 
+from .output import OK, about_file, add_json_option, emit
+
 KEY_BYTES = 32
 
 
@@ -21,9 +23,11 @@ def register(subparsers) -> None:
     gen = sub.add_parser("generate", help=f"write a new random {KEY_BYTES}-byte swarm key (mode 0600)")
     gen.add_argument("--out", type=Path, required=True, help="the key file to create")
     gen.add_argument("--force", action="store_true", help="replace an existing file")
+    add_json_option(gen)
     gen.set_defaults(handler=run_generate)
     check = sub.add_parser("check", help="read a key file as the daemon does; print its length")
     check.add_argument("file", type=Path)
+    add_json_option(check)
     check.set_defaults(handler=run_check)
 
 
@@ -33,7 +37,8 @@ def key_file_text(key: bytes) -> str:
 
 
 def run_generate(args) -> int:
-    """Create the key file with mode 0600 (never readable by others, not even for a moment)."""
+    """Create the key file with mode 0600 (never readable by others, not even for a moment), whatever
+    the umask: unlike map exports, a key file is a secret."""
     flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if args.force else os.O_EXCL)
     fd = os.open(args.out, flags, 0o600)
     try:
@@ -42,14 +47,17 @@ def run_generate(args) -> int:
         os.fsync(fd)
     finally:
         os.close(fd)
-    print(f"swarm key written to {args.out} (mode 0600); copy it to every vehicle of the swarm and set "
-          f"[sharing] swarm_key_file")
-    return 0
+    emit(args, {"file": str(args.out), "key_bytes": KEY_BYTES, "mode": "0600"},
+         f"swarm key written to {args.out} (mode 0600); copy it to every vehicle of the swarm and set "
+         f"[sharing] swarm_key_file")
+    return OK.code
 
 
 def run_check(args) -> int:
-    key = swarmkey.read_key_file(args.file)
-    if key is None:
-        raise ValueError(f"{args.file} holds no key")
-    print(f"{args.file}: a swarm key of {len(key)} bytes")
-    return 0
+    with about_file(args.file):
+        key = swarmkey.read_key_file(args.file)
+        if key is None:
+            raise ValueError("holds no key")
+    emit(args, {"file": str(args.file), "key_bytes": len(key)},
+         f"{args.file}: a swarm key of {len(key)} bytes")
+    return OK.code

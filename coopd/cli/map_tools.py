@@ -1,9 +1,10 @@
 """`coopctl map info|convert`: offline tools on map files; no daemon needed."""
 
-import json
 from pathlib import Path
 
 from coopd.sharing.wire_options import ENCODINGS, DecodeLimits
+
+from .output import NOT_MERGED, OK, USAGE, CommandError, about_file, add_json_option, emit
 
 # Map decoding and exports (numpy, numba kernels) load inside the handlers, as in daemon_commands:
 # building coopctl's parser for status, peers or merge-now must not import them.
@@ -19,7 +20,7 @@ def register(subparsers) -> None:
     info = sub.add_parser("info", help="size, resolution, origin, cell counts, compression ratio")
     info.add_argument("file", type=Path,
                       help="a .cmap file (coopd or thesis map message), or an OctoMap .bt / .ot file")
-    info.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json_option(info)
     _limit_args(info)
     info.set_defaults(handler=run_info)
 
@@ -31,17 +32,17 @@ def register(subparsers) -> None:
     conv.add_argument("-o", "--output", type=Path, default=None, help="output path (default: next to FILE)")
     conv.add_argument("--encoding", default="default", choices=["default", *ENCODINGS],
                       help="cmap only: payload encoding of the written message")
+    add_json_option(conv)
     _limit_args(conv)
     conv.set_defaults(handler=run_convert)
 
     merge = sub.add_parser("merge", help="merge maps into the first one's frame (no GPS, no initial guess); "
-                                         "exit 3 when a map could not be merged")
+                                         f"exit {NOT_MERGED.code} when a map could not be merged")
     merge.add_argument("files", type=Path, nargs="+",
                        help="two or more map files (.cmap, OctoMap .bt / .ot); the first is the reference")
     merge.add_argument("-o", "--output", type=Path, required=True, help="the merged global map (.cmap)")
-    merge.add_argument("--json", action="store_true",
-                       help="print the report as JSON: per input after the first, accepted, transform "
-                            "(4x4 row-major, metres, into the first map's frame), inliers, score, seconds")
+    add_json_option(merge, "print the report as JSON: per input after the first, accepted, transform "
+                           "(4x4 row-major, metres, into the first map's frame), inliers, score, seconds")
     merge.add_argument("--variant", default="coopd", choices=["coopd", "thesis", "rigid", "features"],
                        help="pipeline variant (default coopd; thesis = the thesis' own pipeline)")
     _limit_args(merge)
@@ -65,18 +66,19 @@ def map_info(path: Path, limits: DecodeLimits) -> dict:
     from coopd.sharing.wire import decode_map, peek
 
     data = read_cmap_bytes(path, limits)
-    if is_octomap(data):
-        octo = parse_header(data)
-        grid = read_octomap(data, limits.max_cells)
-        source = {"format": f"octomap {'.bt' if octo.binary else '.ot'} ({octo.tree_type})",
-                  "message_type": None, "format_version": None, "encoding": None, "vehicle_id": None,
-                  "map_version": None, "stamp": None}
-    else:
-        header = peek(data)
-        grid, meta = decode_map(data, limits)
-        source = {"format": "cmap", "message_type": header.message_type,
-                  "format_version": header.format_version, "encoding": header.encoding,
-                  "vehicle_id": meta.vehicle_id, "map_version": meta.version, "stamp": meta.stamp}
+    with about_file(path):
+        if is_octomap(data):
+            octo = parse_header(data)
+            grid = read_octomap(data, limits.max_cells)
+            source = {"format": f"octomap {'.bt' if octo.binary else '.ot'} ({octo.tree_type})",
+                      "message_type": None, "format_version": None, "encoding": None, "vehicle_id": None,
+                      "map_version": None, "stamp": None}
+        else:
+            header = peek(data)
+            grid, meta = decode_map(data, limits)
+            source = {"format": "cmap", "message_type": header.message_type,
+                      "format_version": header.format_version, "encoding": header.encoding,
+                      "vehicle_id": meta.vehicle_id, "map_version": meta.version, "stamp": meta.stamp}
     counts = grid.counts()
     lo, hi = grid.bounds_m()
     return {
@@ -100,9 +102,6 @@ def map_info(path: Path, limits: DecodeLimits) -> dict:
 
 def run_info(args) -> int:
     info = map_info(args.file, _limits(args))
-    if args.json:
-        print(json.dumps(info))
-        return 0
     known_pct = 100.0 * info["known"] / info["cells"]
     message = [
         f"message         type {info['message_type']} format {info['format_version']}, "
@@ -122,8 +121,8 @@ def run_info(args) -> int:
         f"free {info['free']}, inaccessible {info['inaccessible']}",
         f"compression     {info['compression_ratio']:.1f} : 1 (cells / file bytes)",
     ]
-    print("\n".join(lines))
-    return 0
+    emit(args, info, "\n".join(lines))
+    return OK.code
 
 
 def default_output(path: Path, fmt: str, z: float | None) -> Path:
@@ -134,29 +133,57 @@ def default_output(path: Path, fmt: str, z: float | None) -> Path:
     return path.with_suffix(f".{fmt}")
 
 
-def run_convert(args) -> int:
-    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top, load_map, save_cmap
+def check_z(fmt: str, z: float | None) -> None:
+    """--z (a slice height) means something for png output only."""
+    if z is not None and fmt != "png":
+        raise CommandError("--z applies to png output only", USAGE)
 
-    if args.z is not None and args.to != "png":
-        raise ValueError("--z applies to --to png only")
+
+def write_map(grid, out: Path, fmt: str, z: float | None, cmap_bytes) -> dict:
+    """Write `grid` to `out` as `fmt`; returns what was written (for the text line and --json).
+    `cmap_bytes()` gives the message a .cmap holds (the daemon's exact bytes, or a re-encoding)."""
+    from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
+    from coopd.io.atomic import write_atomic
+
+    written = {"file": str(out), "format": fmt}
+    if fmt == "cmap":
+        data = cmap_bytes()
+        write_atomic(out, data)
+        return {**written, "bytes": len(data)}
+    if fmt == "ply":
+        return {**written, "points": export_ply(grid, out)}
+    if fmt == "png" and z is None:
+        export_png_top(grid, out)
+        return {**written, "view": "top"}
+    if fmt == "png":
+        export_png_slice(grid, out, z)
+        return {**written, "view": "slice", "z_m": z}
+    return {**written, "bytes": export_bt(grid, out)}
+
+
+def written_text(written: dict) -> str:
+    """`wrote FILE (what)` for write_map's answer."""
+    if "points" in written:
+        what = f"{written['points']} occupied points"
+    elif written.get("view") == "top":
+        what = "top view"
+    elif "view" in written:
+        what = f"slice at z = {written['z_m']} m"
+    else:
+        what = f"{written['bytes']} bytes"
+    return f"wrote {written['file']} ({what})"
+
+
+def run_convert(args) -> int:
+    from coopd.io import load_map
+    from coopd.sharing.wire import encode_map
+
+    check_z(args.to, args.z)
     grid, meta = load_map(args.file, _limits(args))
     out = args.output or default_output(args.file, args.to, args.z)
-    if args.to == "ply":
-        n = export_ply(grid, out)
-        detail = f"{n} occupied points"
-    elif args.to == "png":
-        if args.z is None:
-            export_png_top(grid, out)
-            detail = "top view"
-        else:
-            export_png_slice(grid, out, args.z)
-            detail = f"slice at z = {args.z} m"
-    elif args.to == "bt":
-        detail = f"{export_bt(grid, out)} bytes"
-    else:
-        detail = f"{save_cmap(out, grid, meta, args.encoding)} bytes"
-    print(f"wrote {out} ({detail})")
-    return 0
+    written = write_map(grid, out, args.to, args.z, lambda: encode_map(grid, meta, args.encoding))
+    emit(args, {"source": str(args.file), **written}, written_text(written))
+    return OK.code
 
 
 def run_merge(args) -> int:
@@ -175,12 +202,10 @@ def run_merge(args) -> int:
 
     report = merge_files(args.files, args.output, lambda path: load_map(path, limits)[0], save,
                          VARIANTS[args.variant]())
-    if args.json:
-        print(json.dumps(report))
-    else:
-        for entry in report["maps"]:
-            verdict = "merged" if entry["accepted"] else f"not merged ({entry['reason']})"
-            print(f"{entry['path']}: {verdict}, score {entry['score']}, {entry['inliers']} inliers, "
-                  f"{entry['seconds']} s")
-        print(f"wrote {args.output}")
-    return 0 if all(e["accepted"] for e in report["maps"]) else 3
+    lines = []
+    for entry in report["maps"]:
+        verdict = "merged" if entry["accepted"] else f"not merged ({entry['reason']})"
+        lines.append(f"{entry['path']}: {verdict}, score {entry['score']}, {entry['inliers']} inliers, "
+                     f"{entry['seconds']} s")
+    emit(args, report, "\n".join([*lines, f"wrote {args.output}"]))
+    return OK.code if all(e["accepted"] for e in report["maps"]) else NOT_MERGED.code

@@ -121,7 +121,7 @@ class CheckpointStore:
             path = self.directory / f"{name}.{seq:010d}.cmap"
             t0 = time.monotonic()
             try:
-                atomic.write_atomic(path, data)
+                atomic.write_atomic(path, data, atomic.PRIVATE)
             except OSError as e:
                 code = errno.errorcode.get(e.errno, str(e.errno))
                 return self._failed(name, f"{code}: {e.strerror or e}")
@@ -293,7 +293,8 @@ class VersionReserve:
 
     def _write(self, reserved: int, epoch: int) -> bool:
         try:
-            atomic.write_atomic(self.path, json.dumps({"reserved": reserved, "epoch": epoch}).encode())
+            atomic.write_atomic(self.path, json.dumps({"reserved": reserved, "epoch": epoch}).encode(),
+                               atomic.PRIVATE)
         except OSError as e:
             self.failed += 1
             if self.failed == 1 or self.failed % 100 == 0:

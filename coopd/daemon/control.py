@@ -652,14 +652,19 @@ def _peer_uid(sock: socket.socket) -> int:
 # ------------------------------------------------------------------------------------------ client
 class ControlError(OSError):
     """coopctl could not get an answer; the message is meant for the operator. An OSError, so
-    that coopctl reports it like any other I/O failure (one line, exit code 1)."""
+    that coopctl reports it like any other I/O failure (one line; exit code 1, or 5 when
+    DaemonUnreachable)."""
 
 
-class DaemonNotRunning(ControlError):
+class DaemonUnreachable(ControlError):
+    """No answer at all: the daemon is not running, its socket is not ours to use, or it is silent."""
+
+
+class DaemonNotRunning(DaemonUnreachable):
     pass
 
 
-class SocketAccessDenied(ControlError):
+class SocketAccessDenied(DaemonUnreachable):
     pass
 
 
@@ -706,7 +711,7 @@ def request(
         except OSError as e:
             if e.errno in (errno.ENOTSOCK, errno.ENOTDIR):
                 raise DaemonNotRunning(f"{path} is not a coopd control socket") from None
-            raise ControlError(f"cannot connect to {path}: {e.strerror or e}") from None
+            raise DaemonUnreachable(f"cannot connect to {path}: {e.strerror or e}") from None
         try:
             sock.sendall(encode_frame({"v": PROTOCOL_VERSION, "cmd": cmd, "args": args or {}}))
             head = _recv_exact(sock, LENGTH.size)
@@ -733,7 +738,7 @@ def request(
                 blob = _recv_exact(sock, size)
             return result, blob
         except TimeoutError:
-            raise ControlError(f"coopd did not answer {cmd!r} within {timeout_s} s") from None
+            raise DaemonUnreachable(f"coopd did not answer {cmd!r} within {timeout_s} s") from None
         except (ConnectionResetError, BrokenPipeError):
             raise ControlError(f"coopd closed the connection during {cmd!r}") from None
         except (ValueError, TypeError, RecursionError) as e:

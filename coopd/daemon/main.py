@@ -1,6 +1,7 @@
 """coopd: the cooperative mapping daemon (`coopd --config /etc/coopd/coopd.toml`).
 
-Logs go to stderr (journald under systemd). Exit codes: 0 stopped by SIGTERM/SIGINT (final
+Logs go to stderr; under systemd each line carries its syslog priority for journald
+(coopd.daemon.logs). Exit codes: 0 stopped by SIGTERM/SIGINT (final
 checkpoint written), 1 could not start (control socket in use, port taken, camera missing),
 2 bad command line or configuration (the message names the key).
 """
@@ -13,6 +14,8 @@ import signal
 import sys
 
 from coopd.daemon.config import DEFAULT_CONFIG_PATH, ConfigError, as_dict, from_dict, load_config
+from coopd.daemon.logs import setup_logging
+from coopd.version import add_version_option
 
 log = logging.getLogger("coopd.daemon")
 
@@ -36,7 +39,12 @@ OVERRIDES = (
 
 
 def parse_args(argv) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="coopd", description="Cooperative 3D occupancy mapping daemon.")
+    p = argparse.ArgumentParser(
+        prog="coopd", description="Cooperative 3D occupancy mapping daemon.",
+        epilog=f"exit codes: {EXIT_OK} stopped by SIGTERM/SIGINT (final checkpoint written), "
+               f"{EXIT_START_FAILED} could not start, {EXIT_CONFIG} bad command line or configuration",
+    )
+    add_version_option(p)
     p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help=f"TOML file ({DEFAULT_CONFIG_PATH})")
     p.add_argument("--no-config", action="store_true", help="start from the built-in defaults, no file")
     for option, dest, kind, section, key, text in OVERRIDES:
@@ -68,17 +76,6 @@ def build_config(args: argparse.Namespace):
     if args.no_distributed:
         table["merging"]["distributed"] = False
     return from_dict(table)
-
-
-def setup_logging(level: str) -> None:
-    handler = logging.StreamHandler(sys.stderr)
-    fmt = "%(levelname)s %(name)s: %(message)s"
-    if sys.stderr.isatty():
-        fmt = "%(asctime)s " + fmt
-    handler.setFormatter(logging.Formatter(fmt))
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(level.upper())
 
 
 def main(argv=None, fast_exit: bool = True) -> int:

@@ -1,8 +1,12 @@
 """sd_notify for Type=notify: READY=1, STATUS=..., WATCHDOG=1, STOPPING=1.
 
-systemd-python's `systemd.daemon.notify` is used when installed; otherwise the same datagram is
-sent by hand to $NOTIFY_SOCKET (a path, or "@name" for the abstract namespace), which is all
-sd_notify(3) does. Without NOTIFY_SOCKET (not started by systemd) every call is a no-op.
+The daemon sends the datagram itself to $NOTIFY_SOCKET (a path, or "@name" for the abstract
+namespace), which is all sd_notify(3) does, but never blocks: a full notify queue (PID 1 busy)
+drops and counts the message. systemd-python's `systemd.daemon.notify` is not the default even when
+installed: libsystemd's sd_notify blocks on a full queue and systemd-python calls it holding the
+GIL, so one watchdog ping would stop every thread of the daemon until PID 1 reads its socket
+(tests/daemon/test_notify.py reproduces it). Backend "systemd" stays available as an explicit choice.
+Without NOTIFY_SOCKET (not started by systemd) every call is a no-op.
 
 The watchdog is fed by WatchdogPinger at half of $WATCHDOG_USEC, and only while the daemon's
 health check passes: a hung stage stops the pings and systemd restarts the service.
@@ -27,18 +31,18 @@ def _load_systemd():
 
 
 class Notifier:
-    """Sends sd_notify messages; backend "auto" (library if installed), "systemd" or "socket"."""
+    """Sends sd_notify messages; backend "socket" (never blocks) or "systemd" (systemd-python)."""
 
-    def __init__(self, backend: str = "auto", environ=None):
+    def __init__(self, backend: str = "socket", environ=None):
         env = os.environ if environ is None else environ
         self.address = env.get("NOTIFY_SOCKET") or None
         self._watchdog_usec = env.get("WATCHDOG_USEC")
         self._watchdog_pid = env.get("WATCHDOG_PID")
-        lib = _load_systemd() if backend in ("auto", "systemd") else None
-        if backend == "systemd" and lib is None:
-            raise RuntimeError("systemd-python is not installed (pip install coopd[systemd])")
-        if backend not in ("auto", "systemd", "socket"):
+        if backend not in ("systemd", "socket"):
             raise ValueError(f"unknown notify backend {backend!r}")
+        lib = _load_systemd() if backend == "systemd" else None
+        if backend == "systemd" and lib is None:
+            raise RuntimeError("systemd-python is not installed")
         self._lib = lib
         self.backend = "systemd-python" if lib is not None else "socket"
         self._sock: socket.socket | None = None

@@ -36,7 +36,7 @@ from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.threads import ThreadPriorities, WorkerProgress
 from coopd.geometry import euler_to_matrix, matrix_to_quat
 from coopd.grid import OccupancyGrid
-from coopd.io.atomic import write_atomic
+from coopd.io.atomic import PRIVATE, write_atomic
 from coopd.mapping import CameraMount, FrameRejected, Mapper, load_kernels
 from coopd.mapping.association import FrameAssociator
 from coopd.sharing import swarmkey
@@ -225,7 +225,7 @@ def save_map_frame(state_dir, vehicle_id: int, origin_fc_enu) -> None:
     """Write FRAME_FILE atomically: where the local map's frame sits in the FC's local frame, read
     back on start with the local checkpoint (tools that prepare a state dir write it the same way)."""
     data = json.dumps({"vehicle_id": vehicle_id, "origin_fc_enu": [float(v) for v in origin_fc_enu]})
-    write_atomic(Path(state_dir) / FRAME_FILE, data.encode())
+    write_atomic(Path(state_dir) / FRAME_FILE, data.encode(), PRIVATE)
 
 
 # ------------------------------------------------------------------------------------ the daemon
@@ -239,7 +239,7 @@ class Daemon:
         self.started = time.monotonic()
         self.state = "starting"
         # The socket backend, not libsystemd's sd_notify: that one blocks on a full notify queue while
-        # holding the GIL, which froze every thread of the daemon, mapping included.
+        # holding the GIL, which froze every thread of the daemon, mapping included (notify.py).
         self.notifier = notifier if notifier is not None else Notifier("socket")
         found = find_merge_all() if merge_fn is FROM_BUILD else (merge_fn, None)
         self.merge_fn, self.merge_start_error = found

@@ -20,7 +20,7 @@ _TRAVERSALS = {"bresenham": raycast.TRAVERSAL_BRESENHAM, "exact": raycast.TRAVER
 
 @dataclass(frozen=True)
 class MapperConfig:
-    """Sensor model and HIMM parameters (thesis §6.3; defaults from notes §3)."""
+    """Sensor model and HIMM parameters (thesis §6.3; defaults from docs/method.md §3)."""
 
     resolution: float = 0.10
     """m_r, metres per cell."""

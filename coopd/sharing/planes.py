@@ -3,8 +3,8 @@
 Cells are split into a 2-bit class plane (unknown / 0 / 100 / escape), a nibble stream for
 the escaped cells (the other HIMM values 10..90 and -2) and a raw byte stream for anything
 else; each stream is one zstd frame. Four cells per plane byte let zstd's byte-wise entropy
-coder spend well under one bit on a free cell, which is where plain zstd loses (thesis-notes
-§4 goal: smaller than zstd -19 at the speed of zstd -3). Layout in docs/protocol.md §4.
+coder spend well under one bit on a free cell, which is where plain zstd loses (the goal:
+smaller than zstd -19 at the speed of zstd -3). Layout in docs/protocol.md §4.
 """
 
 import struct

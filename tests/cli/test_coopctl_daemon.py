@@ -134,7 +134,7 @@ def test_peers_and_merge_now(daemon, capsys):
     assert "10.42.0.5:7400" in out and "up" in out
     assert main(["peers", "--json", "--socket", daemon]) == 0
     assert json.loads(capsys.readouterr().out)["peers"][0]["vehicle_id"] == 5
-    assert main(["merge-now", "--socket", daemon]) == 2
+    assert main(["merge-now", "--socket", daemon]) == 4  # deferred
     assert "merge-now: deferred: needs 40 MiB" in capsys.readouterr().out
     MERGE_OUTCOME["outcome"] = "done"
     try:
@@ -173,7 +173,7 @@ def test_dump_map_exports(daemon, tmp_path, capsys):
 def test_dump_map_errors(daemon, tmp_path, capsys):
     assert main(["dump-map", "7", "-o", str(tmp_path / "x.cmap"), "--socket", daemon]) == 1
     assert "no map" in capsys.readouterr().err
-    assert main(["dump-map", "somebody", "-o", str(tmp_path / "x.cmap"), "--socket", daemon]) == 1
+    assert main(["dump-map", "somebody", "-o", str(tmp_path / "x.cmap"), "--socket", daemon]) == 2
     assert "vehicle id" in capsys.readouterr().err
     assert (
         main(["dump-map", "local", "-o", str(tmp_path / "x.cmap"), "--max-bytes", "100", "--socket", daemon])
@@ -190,13 +190,13 @@ def test_dump_map_errors(daemon, tmp_path, capsys):
 
 def test_daemon_not_running(tmp_path, capsys):
     path = tmp_path / "absent.sock"
-    assert main(["status", "--socket", str(path)]) == 1
+    assert main(["status", "--socket", str(path)]) == 5
     err = capsys.readouterr().err
     assert "coopd is not running" in err and "systemctl start coopd" in err
 
 
 def test_not_running_message_from_the_program(tmp_path):
-    """Run as `python -m coopd.cli.coopctl`: one line on stderr, exit code 1, no traceback."""
+    """Run as `python -m coopd.cli.coopctl`: one line on stderr, exit code 5 (unreachable), no traceback."""
     import subprocess
 
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -207,7 +207,7 @@ def test_not_running_message_from_the_program(tmp_path):
         cwd=root,
         timeout=120,
     )
-    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert r.returncode == 5 and "Traceback" not in r.stderr
     assert r.stderr.startswith("coopctl: error: coopd is not running: no control socket")
 
 
@@ -218,7 +218,7 @@ def test_stale_socket_reports_not_running(capsys):
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         s.bind(path)
         s.close()
-        assert main(["peers", "--socket", path]) == 1
+        assert main(["peers", "--socket", path]) == 5
         assert "nothing listens" in capsys.readouterr().err
     finally:
         shutil.rmtree(d)
@@ -245,5 +245,48 @@ def test_permission_denied_message(daemon):
     with os.fdopen(r) as f:
         err = f.read()
     _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 1
+    assert os.waitstatus_to_exitcode(status) == 5
     assert "permission denied" in err and "coopd" in err and "group" in err
+
+
+def test_dump_map_json_names_what_was_written(daemon, tmp_path, capsys):
+    out = tmp_path / "g.ply"
+    assert main(["dump-map", "global", "-o", str(out), "--json", "--socket", daemon]) == 0
+    grid, meta = MAPS["global"]
+    assert json.loads(capsys.readouterr().out) == {
+        "file": str(out), "format": "ply", "points": grid.counts().occupied, "map": "global",
+        "vehicle_id": meta.vehicle_id, "map_version": meta.version, "shape": [20, 16, 8],
+        "known": grid.counts().known}
+
+
+def test_dump_map_refuses_an_unknown_suffix_before_asking_the_daemon(tmp_path, capsys):
+    out = tmp_path / "x.xyz"
+    absent = str(tmp_path / "no-daemon.sock")  # not reached: the suffix is checked first
+    assert main(["dump-map", "local", "-o", str(out), "--socket", absent]) == 2
+    err = capsys.readouterr().err
+    assert f"{out}: cannot tell the output format from the suffix '.xyz'" in err and "--to" in err
+    assert not out.exists()
+
+
+def test_dump_map_exports_follow_the_umask(daemon, tmp_path, capsys):
+    old = os.umask(0o027)
+    try:
+        for name in ("m.cmap", "m.ply", "m.png", "m.bt"):
+            assert main(["dump-map", "local", "-o", str(tmp_path / name), "--socket", daemon]) == 0
+    finally:
+        os.umask(old)
+    capsys.readouterr()
+    assert {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()} == dict.fromkeys(
+        ("m.cmap", "m.ply", "m.png", "m.bt"), 0o640)
+
+
+def test_failures_are_json_objects_with_json(daemon, tmp_path, capsys):
+    absent = str(tmp_path / "absent.sock")
+    assert main(["peers", "--json", "--socket", absent]) == 5
+    reply = json.loads(capsys.readouterr().out)
+    assert reply["code"] == "unreachable" and reply["exit"] == 5 and "coopd is not running" in reply["error"]
+    assert main(["dump-map", "7", "-o", str(tmp_path / "x.cmap"), "--json", "--socket", daemon]) == 1
+    reply = json.loads(capsys.readouterr().out)
+    assert reply["code"] == "failed" and reply["daemon_code"] and "no map" in reply["error"]
+    assert main(["merge-now", "--json", "--socket", daemon]) == 4
+    assert json.loads(capsys.readouterr().out)["outcome"] == "deferred"

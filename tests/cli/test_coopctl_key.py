@@ -1,5 +1,7 @@
 """coopctl key: a swarm key file the daemon reads with the same decoder, created mode 0600."""
 
+import json
+import os
 import stat
 
 from coopd.cli.coopctl import main
@@ -35,3 +37,19 @@ def test_check_refuses_what_the_daemon_would_refuse(tmp_path, capsys):
         assert main(["key", "check", str(tmp_path / name)]) == 1, name
     err = capsys.readouterr().err
     assert "at least 16 bytes" in err and "larger than 4096 bytes" in err and "holds no key" in err
+
+
+def test_key_stays_private_under_any_umask_and_speaks_json(tmp_path, capsys):
+    path = tmp_path / "swarm.key"
+    old = os.umask(0)
+    try:
+        assert main(["key", "generate", "--out", str(path), "--json"]) == 0
+    finally:
+        os.umask(old)
+    assert json.loads(capsys.readouterr().out) == {"file": str(path), "key_bytes": 32, "mode": "0600"}
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert main(["key", "check", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"file": str(path), "key_bytes": 32}
+    (tmp_path / "bad.key").write_text("hex:zz")
+    assert main(["key", "check", str(tmp_path / "bad.key"), "--json"]) == 1
+    assert json.loads(capsys.readouterr().out)["error"].startswith(f"{tmp_path / 'bad.key'}: ")

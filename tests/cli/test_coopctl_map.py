@@ -1,6 +1,7 @@
 """`coopctl map info|convert` on real files, through main() as the entry point calls it."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -74,7 +75,7 @@ def test_errors_are_one_line_and_exit_1(tmp_path, capsys):
 
 def test_z_only_with_png(cmap):
     path, _ = cmap
-    assert main(["map", "convert", str(path), "--to", "ply", "--z", "1"]) == 1
+    assert main(["map", "convert", str(path), "--to", "ply", "--z", "1"]) == 2  # usage
 
 
 def test_runs_as_a_program_without_a_daemon(cmap):
@@ -88,3 +89,30 @@ def test_runs_as_a_program_without_a_daemon(cmap):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "40 x 30 x 12" in done.stdout
+
+
+def test_errors_name_the_file(tmp_path, capsys):
+    bad, empty = tmp_path / "bad.cmap", tmp_path / "empty.cmap"
+    bad.write_bytes(b"\x05garbage")
+    empty.write_bytes(b"")
+    for path in (bad, empty, tmp_path / "missing.cmap", tmp_path):
+        assert main(["map", "info", str(path)]) == 1
+        assert capsys.readouterr().err.startswith(f"coopctl: error: {path}: "), path
+        assert main(["map", "convert", str(path), "--to", "ply"]) == 1
+        assert capsys.readouterr().err.startswith(f"coopctl: error: {path}: "), path
+    assert main(["map", "info", str(bad), "--json"]) == 1
+    expected = {"error": f"{bad}: unknown message type 5", "code": "failed", "exit": 1}
+    assert json.loads(capsys.readouterr().out) == expected
+
+
+def test_convert_json_and_the_umask(cmap, tmp_path, capsys):
+    path, grid = cmap
+    out = tmp_path / "out.bt"
+    old = os.umask(0o002)
+    try:
+        assert main(["map", "convert", str(path), "--to", "bt", "-o", str(out), "--json"]) == 0
+    finally:
+        os.umask(old)
+    assert json.loads(capsys.readouterr().out) == {"source": str(path), "file": str(out), "format": "bt",
+                                                   "bytes": out.stat().st_size}
+    assert out.stat().st_mode & 0o777 == 0o664

@@ -255,3 +255,14 @@ def test_kill_9_during_repeated_checkpoints_never_loads_corrupt(tmp_path):
         assert cp.meta.version > last_version
         last_version = cp.meta.version
     print(f"20 kills, {mid_write} of them inside write_atomic (temp file left), last version {last_version}")
+
+
+def test_checkpoints_are_private_whatever_the_umask(store):
+    """Maps of the swarm stay readable by the daemon's user only, also under a lax umask."""
+    old = os.umask(0)
+    try:
+        path = store.save("local", make_grid(1), MapMeta(1))
+        peer = store.save_message("peer-7", encode_map(make_grid(2), MapMeta(7)))
+    finally:
+        os.umask(old)
+    assert [p.stat().st_mode & 0o777 for p in (path, peer)] == [0o600, 0o600]

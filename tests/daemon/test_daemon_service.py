@@ -76,6 +76,15 @@ def test_command_line_and_config_errors(wd, capsys):
     assert "vehicle 7" in capsys.readouterr().out
 
 
+def test_help_names_the_exit_codes(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "exit codes: 0 stopped by SIGTERM/SIGINT (final checkpoint written), 1 could not start, 2 bad " \
+        "command line or configuration" in text
+
+
 def test_second_daemon_on_a_served_control_socket_refuses_to_start(wd):
     cfg = _config(wd)
     with control.ControlServer(cfg.daemon.control_socket, {}):

@@ -1,8 +1,8 @@
 """The real coopd (coopd.daemon.main) under a real systemd, with the unit file unchanged: Debian booted
 in systemd-nspawn as in test_nspawn_boot.py (whose container helpers this reuses). No vehicle is
 attached, so the daemon waits for its FC and camera while systemd sees READY=1, STATUS= lines and
-watchdog pings; a frozen daemon (SIGSTOP: no thread runs) is killed by the watchdog and restarted;
-systemctl stop ends it cleanly within seconds."""
+watchdog pings, and journald files each log line under its priority; a frozen daemon (SIGSTOP: no
+thread runs) is killed by the watchdog and restarted; systemctl stop ends it cleanly within seconds."""
 
 import json
 import os
@@ -71,6 +71,19 @@ def test_real_coopd_under_systemd():
         assert shown["StatusText"].startswith("running: link connecting"), shown
         report["StatusText"] = shown["StatusText"]
         first_pid = int(shown["MainPID"])
+        # journald stores each line's <N> priority: -p warning keeps the warnings (no camera
+        # attached: "camera ... not reachable") and leaves the INFO lines out
+        def journal(*args):
+            return c.run("journalctl", "-u", "coopd", "--no-pager", "-o", "cat", f"_PID={first_pid}", *args,
+                         check=False).stdout.splitlines()
+        everything = _wait(lambda: (lines := journal()) and any(" not reachable (" in x for x in lines)
+                           and lines, 30)
+        warnings = journal("-p", "warning")
+        assert any(x.startswith("INFO ") for x in everything), everything
+        assert warnings and all(x.startswith(("WARNING ", "ERROR ", "CRITICAL ")) for x in warnings), warnings
+        assert any(" not reachable (" in x for x in warnings), warnings
+        assert not any(x.startswith("<") for x in everything), everything  # the prefix is parsed, not kept
+        report["journal_lines"] = {"all": len(everything), "warning_and_above": len(warnings)}
         time.sleep(12)  # longer than WatchdogSec=10: the pings keep it alive
         assert c.show("NRestarts")["NRestarts"] == "0"
         assert c.run("systemctl", "is-active", "coopd", check=False).stdout.strip() == "active"

@@ -3,9 +3,12 @@
 import os
 import shutil
 import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -121,3 +124,49 @@ def test_vanished_notify_socket_is_reported_not_fatal(monkeypatch, caplog):
     assert n.ready() is False and n.watchdog() is False
     assert n.failed == 2
     assert "sd_notify" in caplog.text
+
+
+# A process whose notify queue is full (PID 1 not reading): one notify from a side thread, then the
+# main thread must still run. The receiving socket is never read; the queue fills in a few datagrams.
+FULL_QUEUE_PROBE = """
+import os, socket, sys, tempfile, threading, time
+from coopd.daemon.notify import Notifier
+path = os.path.join(tempfile.mkdtemp(prefix="coopd-notify-"), "notify")
+deaf = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+deaf.bind(path)
+filler = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+for _ in range(100000):
+    try:
+        filler.sendto(b"X=1", socket.MSG_DONTWAIT, path)
+    except BlockingIOError:
+        break
+os.environ["NOTIFY_SOCKET"] = path  # libsystemd reads the environment
+notifier = Notifier(sys.argv[1])
+threading.Thread(target=notifier.watchdog, daemon=True).start()
+time.sleep(0.5)
+print("main thread runs, dropped", notifier.dropped, flush=True)
+os._exit(0)
+"""
+
+
+def _full_queue_probe(backend: str) -> str:
+    """stdout of FULL_QUEUE_PROBE; empty when the process froze (killed after 20 s)."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    try:
+        r = subprocess.run([sys.executable, "-c", FULL_QUEUE_PROBE, backend], capture_output=True,
+                           text=True, timeout=20, env=env)
+    except subprocess.TimeoutExpired as e:
+        return e.stdout.decode() if isinstance(e.stdout, bytes) else (e.stdout or "")
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def test_full_notify_queue_drops_the_message_and_never_stops_the_daemon():
+    assert _full_queue_probe("socket") == "main thread runs, dropped 1\n"
+
+
+@pytest.mark.skipif(notify._load_systemd() is None, reason="systemd-python not installed")
+def test_systemd_python_notify_on_a_full_queue_stops_every_thread():
+    """Why the daemon uses its own backend: libsystemd blocks and systemd-python holds the GIL meanwhile.
+    If this fails, a newer systemd-python releases the GIL and could become the default again."""
+    assert _full_queue_probe("systemd") == ""

@@ -7,7 +7,7 @@ import pytest
 
 from coopd.grid import OccupancyGrid
 from coopd.io import load_cmap, save_cmap
-from coopd.io.atomic import write_atomic
+from coopd.io.atomic import PRIVATE, write_atomic
 from coopd.sharing.wire import DecodeLimits, MapMeta, WireError, encode_map
 from tests.sharing.realistic_maps import building_map
 
@@ -54,3 +54,28 @@ def test_load_refuses_oversized_and_corrupt_files(tmp_path):
 def test_load_refuses_non_regular_files(tmp_path):
     with pytest.raises(WireError, match="not a regular file"):
         load_cmap("/dev/zero")
+
+
+@pytest.fixture
+def umask():
+    """Set the process umask for one test (returns a setter); the old one is restored."""
+    old = os.umask(0o022)
+    yield os.umask
+    os.umask(old)
+
+
+@pytest.mark.parametrize("mask, mode", [(0o022, 0o644), (0o027, 0o640), (0o077, 0o600), (0o002, 0o664)])
+def test_written_files_follow_the_umask(tmp_path, umask, mask, mode):
+    umask(mask)
+    path = tmp_path / "a.cmap"
+    write_atomic(path, b"map")
+    assert os.stat(path).st_mode & 0o777 == mode
+    path.chmod(0o600)  # replacing a file gives the new file the umask's mode too
+    write_atomic(path, b"map 2")
+    assert os.stat(path).st_mode & 0o777 == mode and path.read_bytes() == b"map 2"
+
+
+def test_private_files_are_0600_whatever_the_umask(tmp_path, umask):
+    umask(0)
+    write_atomic(tmp_path / "state", b"secret", PRIVATE)
+    assert os.stat(tmp_path / "state").st_mode & 0o777 == 0o600
