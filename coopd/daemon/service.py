@@ -341,7 +341,8 @@ class Daemon:
             max_payload_bytes=self.config.camera.max_payload_bytes,
             stall_timeout_s=self.config.camera.stall_timeout_s,
         )
-        return SocketDepthSource(cfg, self.slot, fc=self.link)  # FC reboots reset its time reference
+        # FC reboots reset its time reference; host-monotonic stamps go through the link's clock fit
+        return SocketDepthSource(cfg, self.slot, fc=self.link, host_to_fc=self._local_to_fc)
 
     def _local_to_fc(self, local_s: float) -> float | None:
         est = self.link.clock.estimate()
