@@ -5,6 +5,7 @@ import os
 import socket
 import struct
 import threading
+import time
 
 import msgpack
 import numpy as np
@@ -85,3 +86,13 @@ class FakeDriver:
         self.listener.close()
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self.path)
+
+
+def take_frames(source, count: int, timeout: float) -> list:
+    """Up to `count` frames from a depth source's slot, waiting at most `timeout` seconds in all."""
+    frames, deadline = [], time.monotonic() + timeout
+    while len(frames) < count and time.monotonic() < deadline:
+        f = source.slot.take(timeout=0.5)
+        if f is not None:
+            frames.append(f)
+    return frames

@@ -3,10 +3,10 @@
 import re
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
+from fake_driver import take_frames
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
 
@@ -28,12 +28,7 @@ def test_the_documented_adapter_delivers_host_stamped_frames(tmp_path):
     src = SocketDepthSource(config, host_to_fc=lambda t: t + 100.0)
     try:
         src.start()
-        frames = []
-        deadline = time.monotonic() + 20
-        while len(frames) < 3 and time.monotonic() < deadline:
-            f = src.slot.take(timeout=0.5)
-            if f is not None:
-                frames.append(f)
+        frames = take_frames(src, 3, 20.0)
         assert len(frames) == 3, (src.status(), proc.poll())
         assert sock.stat().st_mode & 0o067 == 0o060  # the group (coopd) may connect, others not
         for f in frames:

@@ -5,7 +5,7 @@ import time
 
 import numpy as np
 import pytest
-from fake_driver import FakeDriver, frame_bytes, header
+from fake_driver import FakeDriver, frame_bytes, header, take_frames
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
 from coopd.mapping import Mapper, MapperConfig, load_kernels
@@ -29,12 +29,7 @@ def test_frames_arrive_exactly_and_survive_a_driver_restart(world, tmp_path):
     src.start()
     sim.start()
     try:
-        frames = []
-        deadline = time.monotonic() + 10
-        while len(frames) < 12 and time.monotonic() < deadline:
-            f = src.slot.take(timeout=1.0)
-            if f is not None:
-                frames.append(f)
+        frames = take_frames(src, 12, 10.0)
         assert len(frames) == 12, src.status()
         cfg = CameraConfig()
         fx, fy, cx, cy = cfg.intrinsics()
