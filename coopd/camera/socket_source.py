@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
+import os
 import socket
 import threading
 import time
@@ -20,10 +22,39 @@ from .slot import LatestSlot
 
 log = logging.getLogger("coopd.camera")
 
+CAMERA_SOCKET_DIR = "/run/coopd-camera"
+"""Where camera drivers put their sockets: made at boot by systemd/coopd.tmpfiles (root:coopd, mode
+3770: group members create sockets there, only a socket's owner removes it), kept across restarts."""
+DEFAULT_CAMERA_SOCKET = CAMERA_SOCKET_DIR + "/camera.sock"
 RECV_POLL_S = 0.1
 FUTURE_TOLERANCE_S = 1.0
 """A frame stamped more than this (FC seconds) after the FC's clock is from the future: dropped.
 The same bound, in host seconds, applies to host-monotonic stamps against time.monotonic()."""
+
+
+def explain_connect_failure(address: str, err: OSError) -> str:
+    """What an operator should check when connecting to the camera driver failed, in one phrase."""
+    if address.startswith("tcp:"):
+        if err.errno == errno.ECONNREFUSED:
+            return f"{err.strerror or err}: is the camera driver running and listening there?"
+        return str(err)
+    path = address[5:] if address.startswith("unix:") else address
+    directory = os.path.dirname(path) or "."
+    if err.errno == errno.ENOENT:
+        if not os.path.isdir(directory):
+            return (
+                f"directory {directory} does not exist (for {CAMERA_SOCKET_DIR}: install "
+                "systemd/coopd.tmpfiles as /etc/tmpfiles.d/coopd.conf and run systemd-tmpfiles --create)"
+            )
+        return "no socket there yet: is the camera driver running?"
+    if err.errno == errno.ECONNREFUSED:
+        return "the socket exists but nobody listens on it: the camera driver stopped or is restarting"
+    if err.errno in (errno.EACCES, errno.EPERM):
+        return (
+            "permission denied: the socket must be group coopd and group-writable "
+            "(run the driver in group coopd with umask 0007)"
+        )
+    return str(err)
 
 
 def worth_a_line(count: int) -> bool:
@@ -137,10 +168,11 @@ class SocketDepthSource:
                 self.counters["connect_failures"] += 1
                 if worth_a_line(self.counters["connect_failures"]):
                     log.warning(
-                        "camera %s not reachable (%s); retrying with backoff up to %.1f s",
+                        "camera %s not reachable (%s); retrying with backoff up to %.1f s (%d failures)",
                         self.config.address,
-                        e,
+                        explain_connect_failure(self.config.address, e),
                         self.config.backoff_s[1],
+                        self.counters["connect_failures"],
                     )
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.backoff_s[1])

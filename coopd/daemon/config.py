@@ -17,6 +17,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from coopd.camera.socket_source import DEFAULT_CAMERA_SOCKET
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
 
@@ -197,7 +198,7 @@ class CameraConfig:
 
     source: str = _key(
         "depth source: socket:/PATH, tcp:HOST:PORT, realsense",
-        "socket:/run/coopd/camera.sock",
+        "socket:" + DEFAULT_CAMERA_SOCKET,
         _camera_source,
     )
     stall_timeout_s: float = _key(

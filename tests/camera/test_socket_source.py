@@ -396,3 +396,40 @@ def test_absurd_intrinsics_are_dropped_counted_and_logged_without_losing_the_con
         print(lines[0])
     finally:
         drv.close()
+
+
+def test_a_failed_connect_says_what_to_check(tmp_path, caplog):
+    """Missing directory, no driver yet, a driver that died (stale socket), wrong permissions."""
+    import errno
+    import socket
+
+    from coopd.camera.socket_source import explain_connect_failure
+
+    def failure(path):
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            s.connect(path)
+        except OSError as e:
+            return explain_connect_failure(path, e)
+        finally:
+            s.close()
+        raise AssertionError("connected")
+
+    assert "does not exist" in failure(str(tmp_path / "missing" / "cam.sock"))
+    assert "is the camera driver running" in failure(str(tmp_path / "cam.sock"))
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(str(tmp_path / "stale.sock"))
+    stale.close()  # the file stays, nobody listens
+    assert "nobody listens" in failure(str(tmp_path / "stale.sock"))
+    denied = OSError(errno.EACCES, "Permission denied")
+    assert "group coopd" in explain_connect_failure(str(tmp_path / "cam.sock"), denied)
+    caplog.set_level("WARNING", logger="coopd.camera")
+    missing = str(tmp_path / "missing" / "cam.sock")
+    src = SocketDepthSource(SocketSourceConfig(missing, backoff_s=(0.02, 0.05)))
+    src.start()
+    try:
+        assert wait_until(lambda: src.counters["connect_failures"] >= 12, 3.0)
+    finally:
+        src.stop()
+    lines = [r.getMessage() for r in caplog.records if "not reachable" in r.getMessage()]
+    assert len(lines) == 2 and "does not exist" in lines[0] and "(10 failures)" in lines[1], lines
