@@ -1,7 +1,7 @@
 """coopd: the cooperative mapping daemon (`coopd --config /etc/coopd/coopd.toml`).
 
 Logs go to stderr (journald under systemd). Exit codes: 0 stopped by SIGTERM/SIGINT (final
-checkpoint written), 1 could not start (control socket in use, port taken, camera missing),
+checkpoint written), 1 could not start (control socket in use, port taken, pyrealsense2 missing),
 2 bad command line or configuration (the message names the key).
 """
 

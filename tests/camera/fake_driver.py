@@ -10,6 +10,10 @@ import time
 import msgpack
 import numpy as np
 
+from tests.vehicle.sim_helpers import wait_until
+
+__all__ = ["FakeDriver", "depth_of", "frame_bytes", "header", "take_frames", "wait_until"]
+
 
 def header(seq=0, t_us=1000, w=8, h=6, **over):
     d = {

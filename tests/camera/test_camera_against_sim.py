@@ -5,7 +5,7 @@ import time
 
 import numpy as np
 import pytest
-from fake_driver import FakeDriver, frame_bytes, header, take_frames
+from fake_driver import FakeDriver, frame_bytes, header, take_frames, wait_until
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
 from coopd.mapping import Mapper, MapperConfig, load_kernels
@@ -39,7 +39,7 @@ def test_frames_arrive_exactly_and_survive_a_driver_restart(world, tmp_path):
             assert abs(f.t_fc - f.seq / cfg.rate_hz) < 0.005  # FC time base, camera at 10 Hz
         assert (frames[-1].depth > 0).mean() > 0.5  # the house is in view
         sim.stop()
-        assert _wait(lambda: not src.connected, 3.0)
+        assert wait_until(lambda: not src.connected, 3.0)
         sim2 = Simulation(world, 1, seed=0, speed=4.0, mavlink=False, camera_dir=str(tmp_path))
         sim2.start()
         try:
@@ -51,13 +51,6 @@ def test_frames_arrive_exactly_and_survive_a_driver_restart(world, tmp_path):
     finally:
         src.stop()
         sim.stop()
-
-
-def _wait(pred, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not pred():
-        time.sleep(0.02)
-    return pred()
 
 
 def _free_udp_port() -> int:
@@ -170,7 +163,9 @@ def test_a_driver_stamping_host_monotonic_time_gets_its_frames_posed_and_mapped(
         err = np.abs(errors)
         print(f"{len(errors)} frames mapped; |stamp - FC time at send| median {np.median(err) * 1e3:.1f} ms, "
               f"max {err.max() * 1e3:.1f} ms;", src.status()["counters"], "pacing resets", fc.lag_resets)
-        assert np.median(err) < 0.02 and np.percentile(err, 90) < 0.05  # loopback fit: a few ms
+        # A few ms on an idle machine; under load the emulator's clock itself lags its pacing by up to
+        # 0.25 s. A wrong conversion is off by the clocks' origins (hours here).
+        assert np.median(err) < 0.05 and np.percentile(err, 90) < 0.15
         assert mapper.version > 0
     finally:
         src.stop()

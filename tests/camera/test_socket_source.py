@@ -7,18 +7,9 @@ import tracemalloc
 import msgpack
 import numpy as np
 import pytest
-from fake_driver import FakeDriver, depth_of, frame_bytes, header
+from fake_driver import FakeDriver, depth_of, frame_bytes, header, wait_until
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
-
-
-def wait_until(predicate, timeout, poll=0.01):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(poll)
-    return bool(predicate())
 
 
 @pytest.fixture
