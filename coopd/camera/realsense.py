@@ -254,7 +254,7 @@ class RealSenseSource:
                         log.exception("camera %s: unexpected error while opening", self.address)
                     self._stop.wait(self.config.retry_max_s)
                     continue
-                self.counters["opens"] += 1
+                self.counters["connects"] += 1
                 if failed_since is not None:
                     log.info("camera %s open after %d failed attempts in %.1f s",
                              self.address, streak, time.monotonic() - failed_since)
@@ -271,9 +271,9 @@ class RealSenseSource:
                 self.counters["timeouts"] += 1
                 silent = time.monotonic() - last
                 if silent >= self.config.reopen_after_s:
-                    self.counters["reopens"] += 1
+                    self.counters["disconnect_stall"] += 1
                     log.warning("camera %s: no frame for %.1f s (unplugged?): reopening (reopen #%d)",
-                                self.address, silent, self.counters["reopens"])
+                                self.address, silent, self.counters["disconnect_stall"])
                     self.close()
                     return
                 continue
