@@ -141,6 +141,7 @@ class RealSenseSource:
         self._device_clock = DeviceClock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._running = False  # run() is reading on some thread: it closes the device when it ends
         self._seq = 0
 
     @property
@@ -223,14 +224,24 @@ class RealSenseSource:
         self._thread.start()
 
     def stop(self, timeout: float = 2.0) -> None:
+        """Stop reading; the reading thread (ours or the caller's running run()) closes the device."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
-        self.close()
+        if not self._running:
+            self.close()
 
     def run(self) -> None:
         """Open (retrying with backoff while the device is missing), read until it is lost, repeat."""
+        self._running = True
+        try:
+            self._open_and_read()
+        finally:
+            self.close()
+            self._running = False
+
+    def _open_and_read(self) -> None:
         self.native_id = threading.get_native_id()
         backoff, failed_since = 0.5, None
         while not self._stop.is_set():

@@ -175,3 +175,25 @@ def test_bad_realsense_settings_are_config_errors_naming_the_key(key, value):
 def test_the_daemon_passes_the_realsense_settings_on():
     cfg = parse_config('[camera]\nsource = "realsense:8765"\n[camera.realsense]\nfps = 30\ndecimation = 4\n')
     assert cfg.camera.realsense == RealSenseConfig(fps=30, decimation=4)
+
+
+def test_stop_while_the_daemon_runs_the_reading_loop_on_its_own_thread(realsense):
+    """The daemon calls run() on its thread and stop() from another: the loop ends by itself and
+    closes the device; nothing raises on either side."""
+    import threading
+
+    src = RealSenseSource(lambda t: t)
+    errors = []
+
+    def run():
+        try:
+            src.run()
+        except Exception as e:  # the assertion below shows it
+            errors.append(e)
+
+    t = threading.Thread(target=run)
+    t.start()
+    assert len(take_frames(src, 2, 5.0)) == 2
+    src.stop()
+    t.join(5.0)
+    assert not t.is_alive() and errors == [] and src.status()["connected"] is False
