@@ -1,22 +1,13 @@
 """The minimal adapter in docs/camera-protocol.md runs as printed and coopd's client takes its frames."""
 
-import re
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 from fake_driver import take_frames
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
-
-DOC = Path(__file__).resolve().parents[2] / "docs" / "camera-protocol.md"
-
-
-def adapter_example() -> str:
-    m = re.search(r"<!-- adapter-example -->\n```python\n(.*?)```", DOC.read_text(), re.S)
-    assert m, "docs/camera-protocol.md lost its adapter example"
-    return m.group(1)
+from tests.docs_examples import adapter_example
 
 
 def test_the_documented_adapter_delivers_host_stamped_frames(tmp_path):
