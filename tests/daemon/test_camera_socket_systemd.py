@@ -5,21 +5,15 @@ creates /run/coopd-camera/camera.sock, and the hardened daemon connects to it; t
 connection survive a restart of coopd and of the driver."""
 
 import json
-import os
-import time
 
 import pytest
-from test_nspawn_boot import DROPIN, INNER_SRC, SRC, VENV, Container, _ensure_rootfs, _need_tools, coopctl
+from test_daemon_systemd import WRAPPER, _wait
+from test_nspawn_boot import VENV, Container, _ensure_rootfs, _need_tools, coopctl, install_coopd
 
-from coopd.cli.key_commands import key_file_text
 from tests.docs_examples import adapter_example
 
 pytestmark = pytest.mark.slow
 
-WRAPPER = f"""#!/bin/sh
-export PYTHONPATH={INNER_SRC}
-exec {VENV}/bin/python -m coopd.daemon.main "$@"
-"""
 CONFIG = """
 [vehicle]
 mavlink = "udpin:127.0.0.1:15352"
@@ -35,38 +29,18 @@ def _camera(c: Container) -> dict | None:
     return json.loads(r.stdout)["camera"] if r.returncode == 0 else None
 
 
-def _wait(predicate, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.5)
-    return predicate()
-
-
 def test_a_driver_as_another_user_serves_coopd_through_the_default_socket_across_restarts():
     _need_tools()
     _ensure_rootfs()
     c = Container()
     report = {}
     try:
-        c.write("/usr/local/bin/coopd", WRAPPER, "0755")
-        c.write("/etc/coopd/coopd.toml", CONFIG)
-        c.write("/etc/coopd/swarm.key", key_file_text(os.urandom(32)), "0600")
-        c.write("/etc/systemd/system/coopd.service", (SRC / "systemd/coopd.service").read_text())
-        c.write("/etc/systemd/system/coopd.service.d/test-python-under-root.conf", DROPIN)
-        c.write("/etc/sysusers.d/coopd.conf", (SRC / "systemd/coopd.sysusers").read_text())
-        c.write("/etc/tmpfiles.d/coopd.conf", (SRC / "systemd/coopd.tmpfiles").read_text())
-        c.run("systemd-sysusers")
-        c.run("systemd-tmpfiles", "--create", "/etc/tmpfiles.d/coopd.conf")
-        c.run("chown", "coopd:coopd", "/etc/coopd/swarm.key")
+        install_coopd(c, WRAPPER, CONFIG)
         c.run("useradd", "--system", "--no-create-home", "camdrv")
         c.run("chmod", "0711", "/root")  # (volatile overlay) lets camdrv reach the pyenv Python under /root
         c.write("/opt/camera-adapter.py", adapter_example())
         report["dir"] = c.run("stat", "-c", "%a %U %G", "/run/coopd-camera").stdout.split()
         assert report["dir"] == ["3770", "root", "coopd"]
-        c.run("systemctl", "daemon-reload")
         c.run("systemd-run", "--unit=camdrv", "-p", "User=camdrv", "-p", "SupplementaryGroups=coopd",
               "-p", "UMask=0007", f"{VENV}/bin/python", "/opt/camera-adapter.py")
         assert _wait(lambda: c.run("test", "-S", SOCKET, check=False).returncode == 0, 30), \
