@@ -162,10 +162,12 @@ def test_a_driver_stamping_host_monotonic_time_gets_its_frames_posed_and_mapped(
         assert len(errors) > 30, (src.status()["counters"], assoc.status())
         err = np.abs(errors)
         print(f"{len(errors)} frames mapped; |stamp - FC time at send| median {np.median(err) * 1e3:.1f} ms, "
-              f"max {err.max() * 1e3:.1f} ms;", src.status()["counters"], "pacing resets", fc.lag_resets)
-        # A few ms on an idle machine; under load the emulator's clock itself lags its pacing by up to
-        # 0.25 s. A wrong conversion is off by the clocks' origins (hours here).
-        assert np.median(err) < 0.05 and np.percentile(err, 90) < 0.15
+              f"90th percentile {np.percentile(err, 90) * 1e3:.1f} ms, max {err.max() * 1e3:.1f} ms;",
+              src.status()["counters"], "pacing resets", fc.lag_resets)
+        # A few ms on a quiet machine; on a loaded one the emulator's FC clock itself wobbles against
+        # the host's (its pacing lags up to 0.25 s before it re-anchors, its TIMESYNC replies wait
+        # for its loop). A wrong conversion is off by the clocks' origins: hours here.
+        assert np.median(err) < 0.1 and np.percentile(err, 90) < 0.3
         assert mapper.version > 0
     finally:
         src.stop()
