@@ -2,7 +2,7 @@
 
 from .frame import DepthFrame
 from .protocol import FrameHeader, ProtocolError, parse_header
-from .realsense import CameraUnavailable, RealSenseSource, load_pyrealsense2
+from .realsense import CameraUnavailable, RealSenseConfig, RealSenseSource, load_pyrealsense2
 from .slot import LatestSlot
 from .socket_source import SocketDepthSource, SocketSourceConfig
 
@@ -12,6 +12,7 @@ __all__ = [
     "FrameHeader",
     "LatestSlot",
     "ProtocolError",
+    "RealSenseConfig",
     "RealSenseSource",
     "SocketDepthSource",
     "SocketSourceConfig",

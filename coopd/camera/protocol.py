@@ -16,6 +16,11 @@ MAX_SIDE = 4096
 VERSION = 1
 INT_FIELDS = ("v", "seq", "t_us", "w", "h", "n")
 FLOAT_FIELDS = ("fx", "fy", "cx", "cy", "scale", "min_m", "max_m")
+CLOCK_FC = "fc"
+CLOCK_MONOTONIC = "monotonic"
+CLOCKS = (CLOCK_FC, CLOCK_MONOTONIC)
+"""Time domains of `t_us`: the flight controller's boot clock (the default when `clock` is absent) or
+this host's CLOCK_MONOTONIC (Python's time.monotonic()), which coopd converts with its FC clock fit."""
 
 
 class ProtocolError(ValueError):
@@ -36,6 +41,7 @@ class FrameHeader:
     min_m: float
     max_m: float
     n: int
+    clock: str = CLOCK_FC
 
 
 def header_length(prefix: bytes) -> int:
@@ -72,6 +78,9 @@ def parse_header(raw: bytes, max_payload: int) -> FrameHeader:
         raise ProtocolError("bad_size", f"payload n={n} != w*h*2={w * h * 2}")
     if n > max_payload:
         raise ProtocolError("oversize", f"payload {n} bytes exceeds the configured {max_payload}")
+    clock = d.get("clock", CLOCK_FC)
+    if clock not in CLOCKS:
+        raise ProtocolError("bad_clock", f"clock {str(clock)[:16]!r} (expected 'fc' or 'monotonic')")
     if d["seq"] < 0 or d["t_us"] <= 0:
         raise ProtocolError("bad_header", f"seq {d['seq']} / t_us {d['t_us']} not positive")
     if not (0.0 <= d["min_m"] < d["max_m"] <= 1000.0):
@@ -82,4 +91,4 @@ def parse_header(raw: bytes, max_payload: int) -> FrameHeader:
         )
     except FrameRejected as e:
         raise ProtocolError("bad_intrinsics", str(e)) from None
-    return FrameHeader(d["seq"], d["t_us"], intr, float(d["min_m"]), float(d["max_m"]), n)
+    return FrameHeader(d["seq"], d["t_us"], intr, float(d["min_m"]), float(d["max_m"]), n, clock)

@@ -3,25 +3,58 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
+import os
 import socket
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from .frame import DepthFrame
-from .protocol import ProtocolError, header_length, parse_header
+from .protocol import CLOCK_FC, FrameHeader, ProtocolError, header_length, parse_header
 from .slot import LatestSlot
 
 log = logging.getLogger("coopd.camera")
 
+CAMERA_SOCKET_DIR = "/run/coopd-camera"
+"""Where camera drivers put their sockets: made at boot by systemd/coopd.tmpfiles (root:coopd, mode
+3770: group members create sockets there, only a socket's owner removes it), kept across restarts."""
+DEFAULT_CAMERA_SOCKET = CAMERA_SOCKET_DIR + "/camera.sock"
 RECV_POLL_S = 0.1
 FUTURE_TOLERANCE_S = 1.0
-"""A frame stamped more than this (FC seconds) after the FC's clock is from the future: dropped."""
+"""A frame stamped more than this (FC seconds) after the FC's clock is from the future: dropped.
+The same bound, in host seconds, applies to host-monotonic stamps against time.monotonic()."""
+
+
+def explain_connect_failure(address: str, err: OSError) -> str:
+    """What an operator should check when connecting to the camera driver failed, in one phrase."""
+    if address.startswith("tcp:"):
+        if err.errno == errno.ECONNREFUSED:
+            return f"{err.strerror or err}: is the camera driver running and listening there?"
+        return str(err)
+    path = address[5:] if address.startswith("unix:") else address
+    directory = os.path.dirname(path) or "."
+    if err.errno == errno.ENOENT:
+        if not os.path.isdir(directory):
+            return (
+                f"directory {directory} does not exist (for {CAMERA_SOCKET_DIR}: install "
+                "systemd/coopd.tmpfiles as /etc/tmpfiles.d/coopd.conf and run systemd-tmpfiles --create)"
+            )
+        return "no socket there yet: is the camera driver running?"
+    if err.errno == errno.ECONNREFUSED:
+        return "the socket exists but nobody listens on it: the camera driver stopped or is restarting"
+    if err.errno in (errno.EACCES, errno.EPERM):
+        return (
+            "permission denied: the socket must be group coopd and group-writable "
+            "(run the driver in group coopd with umask 0007)"
+        )
+    return str(err)
 
 
 def worth_a_line(count: int) -> bool:
@@ -76,15 +109,26 @@ class _Closed(Exception):
 class SocketDepthSource:
     """One thread per camera: connect, read frame after frame into a LatestSlot, reconnect with backoff.
 
-    Frame times must increase. The reference they are checked against (the newest accepted stamp)
-    never latches: a frame stamped after the FC's clock now is dropped without moving it, an FC
-    reboot (fc_epoch changes) resets it, and frames all older than it for relatch_after_s make the
-    newest of them the reference (a driver whose clock restarted without reconnecting).
+    Frames stamped in host-monotonic time (header `clock` = "monotonic") are converted to FC time
+    with host_to_fc (the vehicle link's clock fit); while it has none they are dropped and counted.
+
+    Frame times must increase (in the driver's own time domain). The reference they are checked
+    against (the newest accepted stamp) never latches: a frame stamped after the FC's clock now is
+    dropped without moving it, an FC reboot (fc_epoch changes) resets it for FC-time stamps, and
+    frames all older than it for relatch_after_s make the newest of them the reference (a driver
+    whose clock restarted without reconnecting).
     """
 
-    def __init__(self, config: SocketSourceConfig, slot: LatestSlot | None = None, fc: FcClock | None = None):
+    def __init__(
+        self,
+        config: SocketSourceConfig,
+        slot: LatestSlot | None = None,
+        fc: FcClock | None = None,
+        host_to_fc: Callable[[float], float | None] | None = None,
+    ):
         self.config = config
         self.fc = fc
+        self.host_to_fc = host_to_fc
         self.slot: LatestSlot[DepthFrame] = slot if slot is not None else LatestSlot()
         self.counters: Counter = Counter()
         self.connected = False
@@ -92,6 +136,7 @@ class SocketDepthSource:
         self.native_id: int | None = None
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
+        self._last_clock = CLOCK_FC  # the time domain of _last_t_us
         self._behind_since: float | None = None  # local time of the first of consecutive older frames
         self._fc_epoch = fc.fc_epoch() if fc is not None else 0
         self._sock: socket.socket | None = None
@@ -123,10 +168,11 @@ class SocketDepthSource:
                 self.counters["connect_failures"] += 1
                 if worth_a_line(self.counters["connect_failures"]):
                     log.warning(
-                        "camera %s not reachable (%s); retrying with backoff up to %.1f s",
+                        "camera %s not reachable (%s); retrying with backoff up to %.1f s (%d failures)",
                         self.config.address,
-                        e,
+                        explain_connect_failure(self.config.address, e),
                         self.config.backoff_s[1],
+                        self.counters["connect_failures"],
                     )
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.backoff_s[1])
@@ -238,57 +284,73 @@ class SocketDepthSource:
                             self.config.address, header.seq, problem,
                             self.counters["dropped_implausible_intrinsics"])
             return
-        if not self._time_acceptable(header.t_us, now):
+        t_fc = self._fc_time_of(header, now)
+        if t_fc is None:
             return
         if self._last_seq is not None and header.seq != self._last_seq + 1:
             self.counters["seq_gaps"] += 1
-        self._last_seq, self._last_t_us = header.seq, header.t_us
+        self._last_seq, self._last_t_us, self._last_clock = header.seq, header.t_us, header.clock
         # Wire order is little-endian; astype is a no-op on little-endian hosts, a swap elsewhere.
         depth = payload.reshape(header.intrinsics.height, header.intrinsics.width).astype(
             np.uint16, copy=False
         )
-        frame = DepthFrame(
-            header.seq, header.t_us * 1e-6, depth, header.intrinsics, header.min_m, header.max_m, now
-        )
+        frame = DepthFrame(header.seq, t_fc, depth, header.intrinsics, header.min_m, header.max_m, now)
         self.counters["frames"] += 1
         self.last_frame_local = now
         self.slot.put(frame)
 
-    def _time_acceptable(self, t_us: int, now: float) -> bool:
-        """Check a frame's FC time against the FC's clock and the reference; drops are counted."""
+    def _fc_time_of(self, header: FrameHeader, now: float) -> float | None:
+        """The frame's FC time, or None (counted) if its stamp is from the future, not increasing, or
+        in host time while the FC clock fit is unknown."""
+        t_us, fc_domain = header.t_us, header.clock == CLOCK_FC
+        if header.clock != self._last_clock and self._last_t_us is not None:
+            self._reset_reference("clock_domain_changed", t_us)
         if self.fc is not None:
             epoch = self.fc.fc_epoch()
             if epoch != self._fc_epoch:
                 self._fc_epoch = epoch
-                if self._last_t_us is not None:
+                if self._last_t_us is not None and fc_domain:  # host stamps do not restart with the FC
                     self._reset_reference("fc_reboot", t_us)
-            fc_now = self.fc.fc_time_latest()
-            if fc_now is not None and t_us * 1e-6 > fc_now + FUTURE_TOLERANCE_S:
-                self.counters["dropped_future_timestamp"] += 1
-                if worth_a_line(self.counters["dropped_future_timestamp"]):
-                    log.warning(
-                        "camera frame stamped %.3f s FC time is %.3f s ahead of the FC clock: dropped "
-                        "(%d so far)",
-                        t_us * 1e-6,
-                        t_us * 1e-6 - fc_now,
-                        self.counters["dropped_future_timestamp"],
-                    )
-                return False
+        if fc_domain:
+            t_fc = t_us * 1e-6
+        elif t_us * 1e-6 > now + FUTURE_TOLERANCE_S:
+            return self._drop_future(t_us * 1e-6 - now, "host")
+        else:
+            t_fc = None if self.host_to_fc is None else self.host_to_fc(t_us * 1e-6)
+            if t_fc is None:
+                self.counters["dropped_no_fc_clock"] += 1
+                if worth_a_line(self.counters["dropped_no_fc_clock"]):
+                    log.warning("camera frame in host time dropped: no FC clock fit yet (%d so far)",
+                                self.counters["dropped_no_fc_clock"])
+                return None
+        fc_now = None if self.fc is None else self.fc.fc_time_latest()
+        if fc_now is not None and t_fc > fc_now + FUTURE_TOLERANCE_S:
+            return self._drop_future(t_fc - fc_now, "FC")
         if self._last_t_us is not None and t_us <= self._last_t_us:
             if self._behind_since is None:
                 self._behind_since = now
             if now - self._behind_since < self.config.relatch_after_s:
                 self.counters["dropped_timestamp_not_increasing"] += 1
-                return False
+                return None
             self._reset_reference("stamps_went_back", t_us)
         self._behind_since = None
-        return True
+        return t_fc
+
+    def _drop_future(self, ahead_s: float, clock: str) -> None:
+        self.counters["dropped_future_timestamp"] += 1
+        if worth_a_line(self.counters["dropped_future_timestamp"]):
+            log.warning(
+                "camera frame stamped %.3f s ahead of the %s clock: dropped (%d so far)",
+                ahead_s,
+                clock,
+                self.counters["dropped_future_timestamp"],
+            )
 
     def _reset_reference(self, reason: str, t_us: int) -> None:
         """Forget the newest accepted stamp: the FC or the driver restarted its clock."""
         self.counters["time_reference_resets_" + reason] += 1
         log.warning(
-            "camera time reference reset (%s): stamps continue at %.3f s FC time after %.3f s",
+            "camera time reference reset (%s): stamps continue at %.3f s after %.3f s",
             reason.replace("_", " "),
             t_us * 1e-6,
             (self._last_t_us or 0) * 1e-6,

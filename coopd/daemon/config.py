@@ -17,6 +17,8 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from coopd.camera.realsense import RealSenseConfig
+from coopd.camera.socket_source import DEFAULT_CAMERA_SOCKET
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
 
@@ -197,7 +199,7 @@ class CameraConfig:
 
     source: str = _key(
         "depth source: socket:/PATH, tcp:HOST:PORT, realsense",
-        "socket:/run/coopd/camera.sock",
+        "socket:" + DEFAULT_CAMERA_SOCKET,
         _camera_source,
     )
     stall_timeout_s: float = _key(
@@ -209,6 +211,7 @@ class CameraConfig:
     pose_wait_s: float = _key(
         "a frame newer than the newest pose waits this long for odometry", 0.1, _between(0.0, 1.0, " s")
     )
+    realsense: RealSenseConfig = field(default_factory=RealSenseConfig)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 Logs go to stderr; under systemd each line carries its syslog priority for journald
 (coopd.daemon.logs). Exit codes: 0 stopped by SIGTERM/SIGINT (final
-checkpoint written), 1 could not start (control socket in use, port taken, camera missing),
+checkpoint written), 1 could not start (control socket in use, port taken, pyrealsense2 missing),
 2 bad command line or configuration (the message names the key).
 """
 

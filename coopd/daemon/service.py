@@ -26,7 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from coopd.camera import LatestSlot, RealSenseSource, SocketDepthSource, SocketSourceConfig
+from coopd.camera import (
+    CameraUnavailable,
+    LatestSlot,
+    RealSenseSource,
+    SocketDepthSource,
+    SocketSourceConfig,
+    load_pyrealsense2,
+)
 from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
@@ -338,14 +345,15 @@ class Daemon:
         source = self.config.camera.source
         if source.startswith("realsense"):
             serial = source.partition(":")[2] or None
-            return RealSenseSource(self._local_to_fc, self.slot, serial=serial)
+            return RealSenseSource(self._local_to_fc, self.slot, self.config.camera.realsense, serial=serial)
         address = source[len("socket:") :] if source.startswith("socket:") else source
         cfg = SocketSourceConfig(
             address=address,
             max_payload_bytes=self.config.camera.max_payload_bytes,
             stall_timeout_s=self.config.camera.stall_timeout_s,
         )
-        return SocketDepthSource(cfg, self.slot, fc=self.link)  # FC reboots reset its time reference
+        # FC reboots reset its time reference; host-monotonic stamps go through the link's clock fit
+        return SocketDepthSource(cfg, self.slot, fc=self.link, host_to_fc=self._local_to_fc)
 
     def _local_to_fc(self, local_s: float) -> float | None:
         est = self.link.clock.estimate()
@@ -437,9 +445,9 @@ class Daemon:
             raise StartupError(f"control socket {self.config.daemon.control_socket}: {e}") from e
         self._spawn("coopd-mavlink", "mavlink", self.link.run)
         if isinstance(self.camera, RealSenseSource):
-            try:
-                self.camera.open()
-            except RuntimeError as e:
+            try:  # a missing module is a broken install; a missing device is waited for (camera thread)
+                load_pyrealsense2()
+            except CameraUnavailable as e:
                 raise StartupError(f"camera.source {self.config.camera.source}: {e}") from e
         self._spawn("coopd-camera", "camera", self.camera.run)
         self._spawn("coopd-mapping", "mapping", self._mapping_loop)

@@ -5,9 +5,14 @@ import os
 import socket
 import struct
 import threading
+import time
 
 import msgpack
 import numpy as np
+
+from tests.vehicle.sim_helpers import wait_until
+
+__all__ = ["FakeDriver", "depth_of", "frame_bytes", "header", "take_frames", "wait_until"]
 
 
 def header(seq=0, t_us=1000, w=8, h=6, **over):
@@ -85,3 +90,13 @@ class FakeDriver:
         self.listener.close()
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self.path)
+
+
+def take_frames(source, count: int, timeout: float) -> list:
+    """Up to `count` frames from a depth source's slot, waiting at most `timeout` seconds in all."""
+    frames, deadline = [], time.monotonic() + timeout
+    while len(frames) < count and time.monotonic() < deadline:
+        f = source.slot.take(timeout=0.5)
+        if f is not None:
+            frames.append(f)
+    return frames

@@ -38,6 +38,12 @@ def test_the_emulators_header_is_accepted():
     )
     assert (h.seq, h.t_us, h.n) == (7, 123456, cfg.width * cfg.height * 2)
     assert h.intrinsics.width == cfg.width and h.intrinsics.fx == pytest.approx(fx)
+    assert h.clock == "fc"  # no `clock` key: the FC time base, as before the key existed
+
+
+def test_the_time_domain_is_read_from_the_clock_key():
+    assert parse(header(clock="fc")).clock == "fc"
+    assert parse(header(clock="monotonic", t_us=5_000_000)).clock == "monotonic"
 
 
 @pytest.mark.parametrize(
@@ -60,6 +66,9 @@ def test_the_emulators_header_is_accepted():
         ({"scale": 0.0}, "bad_intrinsics"),
         ({"fx": 1e9}, "bad_intrinsics"),
         ({"cx": -1e4}, "bad_intrinsics"),
+        ({"clock": "gps"}, "bad_clock"),
+        ({"clock": 1}, "bad_clock"),
+        ({"clock": None}, "bad_clock"),
     ],
 )
 def test_bad_fields_are_refused_with_a_reason(override, reason):
@@ -103,7 +112,7 @@ def test_arbitrary_bytes_only_ever_raise_protocol_error(raw):
 @settings(max_examples=200, deadline=None)
 @given(
     st.dictionaries(
-        st.sampled_from(sorted(header())),
+        st.sampled_from(sorted(header()) + ["clock"]),
         st.one_of(
             st.integers(-(2**63), 2**64 - 1),
             st.floats(),

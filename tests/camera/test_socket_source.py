@@ -7,18 +7,9 @@ import tracemalloc
 import msgpack
 import numpy as np
 import pytest
-from fake_driver import FakeDriver, depth_of, frame_bytes, header
+from fake_driver import FakeDriver, depth_of, frame_bytes, header, wait_until
 
 from coopd.camera import SocketDepthSource, SocketSourceConfig
-
-
-def wait_until(predicate, timeout, poll=0.01):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(poll)
-    return bool(predicate())
 
 
 @pytest.fixture
@@ -30,10 +21,10 @@ def sock_path(tmp_path):
 def make_source(sock_path):
     made = []
 
-    def make(fc=None, **kw):
+    def make(fc=None, host_to_fc=None, **kw):
         kw.setdefault("stall_timeout_s", 0.4)
         kw.setdefault("backoff_s", (0.02, 0.2))
-        src = SocketDepthSource(SocketSourceConfig(sock_path, **kw), fc=fc)
+        src = SocketDepthSource(SocketSourceConfig(sock_path, **kw), fc=fc, host_to_fc=host_to_fc)
         made.append(src)
         src.start()
         return src
@@ -286,6 +277,60 @@ def test_an_fc_reboot_resets_the_time_reference_at_once(sock_path, make_source):
         drv.close()
 
 
+def test_host_monotonic_stamps_are_converted_with_the_fc_clock_fit(sock_path, make_source):
+    """Frames stamped with the host's monotonic clock come out in FC time; before the fit exists,
+    from the host's future, or going back they are dropped and counted; an FC reboot does not
+    reset a host-time reference; FC-stamped frames on the same connection still work."""
+    fit = {"offset": None}
+    fc = StubFcClock(now_s=None)
+
+    def host_to_fc(local_s):
+        return None if fit["offset"] is None else local_s + fit["offset"]
+
+    def script(conn, index, stopping):
+        now_us = fit["start_us"] = int(time.monotonic() * 1e6)
+        conn.sendall(frame_bytes(header(seq=0, t_us=now_us, clock="monotonic")))  # no fit yet
+        stopping.wait(0.3)
+        fit["offset"], fc.epoch = -1000.0, 1  # the link fitted the clock (after an FC reboot)
+        fc.now_s = time.monotonic() - 1000.0
+        for seq, t in ((1, now_us + 100_000), (2, now_us + 60 * 10**6), (3, now_us + 50_000),
+                       (4, now_us + 200_000)):
+            conn.sendall(frame_bytes(header(seq=seq, t_us=t, clock="monotonic")))
+        stopping.wait(0.3)
+        conn.sendall(frame_bytes(header(seq=5, t_us=int(fc.now_s * 1e6), clock="fc")))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source(fc=fc, host_to_fc=host_to_fc)
+        assert wait_until(lambda: src.counters["frames"] == 2, 3.0), src.status()
+        c = src.counters
+        assert c["dropped_no_fc_clock"] == 1 and c["dropped_future_timestamp"] == 1, src.status()
+        assert c["dropped_timestamp_not_increasing"] == 1 and c["time_reference_resets_fc_reboot"] == 0
+        f = src.slot.take()
+        assert f.seq == 4 and f.t_fc == pytest.approx(fit["start_us"] * 1e-6 + 0.2 - 1000.0, abs=1e-6)
+        assert wait_until(lambda: src.counters["frames"] == 3, 3.0), src.status()
+        assert c["time_reference_resets_clock_domain_changed"] == 1
+        assert src.slot.take().t_fc == pytest.approx(fc.now_s, abs=1e-6)
+    finally:
+        drv.close()
+
+
+def test_host_monotonic_stamps_without_a_converter_are_dropped(sock_path, make_source):
+    def script(conn, index, stopping):
+        conn.sendall(frame_bytes(header(seq=0, t_us=int(time.monotonic() * 1e6), clock="monotonic")))
+        conn.sendall(frame_bytes(header(seq=1, t_us=1000)))
+        stopping.wait(5)
+
+    drv = FakeDriver(sock_path, script)
+    try:
+        src = make_source()
+        assert wait_until(lambda: src.counters["frames"] == 1, 3.0), src.status()
+        assert src.counters["dropped_no_fc_clock"] == 1 and src.slot.take().seq == 1
+    finally:
+        drv.close()
+
+
 def test_stamps_that_stay_behind_the_reference_become_the_new_reference(sock_path, make_source):
     """Without an FC clock to judge by, one bad stamp costs at most relatch_after_s of frames."""
 
@@ -342,3 +387,40 @@ def test_absurd_intrinsics_are_dropped_counted_and_logged_without_losing_the_con
         print(lines[0])
     finally:
         drv.close()
+
+
+def test_a_failed_connect_says_what_to_check(tmp_path, caplog):
+    """Missing directory, no driver yet, a driver that died (stale socket), wrong permissions."""
+    import errno
+    import socket
+
+    from coopd.camera.socket_source import explain_connect_failure
+
+    def failure(path):
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            s.connect(path)
+        except OSError as e:
+            return explain_connect_failure(path, e)
+        finally:
+            s.close()
+        raise AssertionError("connected")
+
+    assert "does not exist" in failure(str(tmp_path / "missing" / "cam.sock"))
+    assert "is the camera driver running" in failure(str(tmp_path / "cam.sock"))
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(str(tmp_path / "stale.sock"))
+    stale.close()  # the file stays, nobody listens
+    assert "nobody listens" in failure(str(tmp_path / "stale.sock"))
+    denied = OSError(errno.EACCES, "Permission denied")
+    assert "group coopd" in explain_connect_failure(str(tmp_path / "cam.sock"), denied)
+    caplog.set_level("WARNING", logger="coopd.camera")
+    missing = str(tmp_path / "missing" / "cam.sock")
+    src = SocketDepthSource(SocketSourceConfig(missing, backoff_s=(0.02, 0.05)))
+    src.start()
+    try:
+        assert wait_until(lambda: src.counters["connect_failures"] >= 12, 3.0)
+    finally:
+        src.stop()
+    lines = [r.getMessage() for r in caplog.records if "not reachable" in r.getMessage()]
+    assert len(lines) == 2 and "does not exist" in lines[0] and "(10 failures)" in lines[1], lines

@@ -5,13 +5,10 @@ watchdog pings, and journald files each log line under its priority; a frozen da
 thread runs) is killed by the watchdog and restarted; systemctl stop ends it cleanly within seconds."""
 
 import json
-import os
 import time
 
 import pytest
-from test_nspawn_boot import DROPIN, INNER_SRC, SRC, VENV, Container, _ensure_rootfs, _need_tools, coopctl
-
-from coopd.cli.key_commands import key_file_text
+from test_nspawn_boot import INNER_SRC, VENV, Container, _ensure_rootfs, _need_tools, coopctl, install_coopd
 
 pytestmark = pytest.mark.slow
 
@@ -47,15 +44,7 @@ def test_real_coopd_under_systemd():
     c = Container()
     report = {}
     try:
-        c.write("/usr/local/bin/coopd", WRAPPER, "0755")
-        c.write("/etc/coopd/coopd.toml", CONFIG)
-        c.write("/etc/coopd/swarm.key", key_file_text(os.urandom(32)), "0600")
-        c.write("/etc/systemd/system/coopd.service", (SRC / "systemd/coopd.service").read_text())
-        c.write("/etc/systemd/system/coopd.service.d/test-python-under-root.conf", DROPIN)
-        c.write("/etc/sysusers.d/coopd.conf", (SRC / "systemd/coopd.sysusers").read_text())
-        c.run("systemd-sysusers")
-        c.run("chown", "coopd:coopd", "/etc/coopd/swarm.key")
-        c.run("systemctl", "daemon-reload")
+        install_coopd(c, WRAPPER, CONFIG)
 
         t0 = time.monotonic()
         c.run("systemctl", "start", "coopd", timeout=150)  # Type=notify: returns after READY=1

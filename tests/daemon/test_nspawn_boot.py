@@ -149,6 +149,22 @@ class Container:
                 self.proc.wait()
 
 
+def install_coopd(c: Container, wrapper: str, config: str) -> None:
+    """coopd installed in container c as docs/operations.md says (wrapper as /usr/local/bin/coopd, the
+    config, a swarm key, the unit unchanged plus the test's drop-in, sysusers and tmpfiles entries)."""
+    c.write("/usr/local/bin/coopd", wrapper, "0755")
+    c.write("/etc/coopd/coopd.toml", config)
+    c.write("/etc/coopd/swarm.key", key_file_text(os.urandom(32)), "0600")
+    c.write("/etc/systemd/system/coopd.service", (SRC / "systemd/coopd.service").read_text())
+    c.write("/etc/systemd/system/coopd.service.d/test-python-under-root.conf", DROPIN)
+    c.write("/etc/sysusers.d/coopd.conf", (SRC / "systemd/coopd.sysusers").read_text())
+    c.run("systemd-sysusers")
+    c.write("/etc/tmpfiles.d/coopd.conf", (SRC / "systemd/coopd.tmpfiles").read_text())
+    c.run("systemd-tmpfiles", "--create", "/etc/tmpfiles.d/coopd.conf")
+    c.run("chown", "coopd:coopd", "/etc/coopd/swarm.key")
+    c.run("systemctl", "daemon-reload")
+
+
 def coopctl(c: Container, *args, user=None):
     # NUMBA_CACHE_DIR: coopctl imports coopd.io (map tools) whose numba kernels are cached; a user
     # without a home directory (nobody) and a read-only source tree leaves numba nowhere to cache.
@@ -171,17 +187,9 @@ def test_unit_under_real_systemd(capsys):
     c = Container()
     report = []
     try:
-        c.write("/usr/local/bin/coopd", WRAPPER, "0755")
         # the shipped config with the one step every install adds: a swarm key (docs/operations.md)
-        c.write("/etc/coopd/coopd.toml", (SRC / "etc/coopd.toml").read_text().replace(
+        install_coopd(c, WRAPPER, (SRC / "etc/coopd.toml").read_text().replace(
             'swarm_key_file = ""', 'swarm_key_file = "/etc/coopd/swarm.key"'))
-        c.write("/etc/coopd/swarm.key", key_file_text(os.urandom(32)), "0600")
-        c.write("/etc/systemd/system/coopd.service", (SRC / "systemd/coopd.service").read_text())
-        c.write("/etc/systemd/system/coopd.service.d/test-python-under-root.conf", DROPIN)
-        c.write("/etc/sysusers.d/coopd.conf", (SRC / "systemd/coopd.sysusers").read_text())
-        c.run("systemd-sysusers")
-        c.run("chown", "coopd:coopd", "/etc/coopd/swarm.key")
-        c.run("systemctl", "daemon-reload")
 
         t0 = time.monotonic()
         c.run("systemctl", "start", "coopd", timeout=150)  # Type=notify: returns after READY=1

@@ -380,7 +380,8 @@ class CameraHeaderTarget(Target):
 
         base = {"v": 1, "seq": 3, "t_us": 1000, "w": 8, "h": 6, "fx": 5.0, "fy": 5.0, "cx": 3.5,
                 "cy": 2.5, "scale": 0.001, "enc": "z16", "n": 96, "min_m": 0.2, "max_m": 5.0}
-        variants = [base, {**base, "w": 128, "h": 128, "n": 128 * 128 * 2}, {**base, "fx": 5, "min_m": 0}]
+        variants = [base, {**base, "w": 128, "h": 128, "n": 128 * 128 * 2}, {**base, "fx": 5, "min_m": 0},
+                    {**base, "clock": "monotonic"}, {**base, "clock": "fc"}]
         out = []
         for d in variants:
             raw = msgpack.packb(d, use_bin_type=True)
@@ -404,6 +405,8 @@ class CameraHeaderTarget(Target):
                 raise Finding(f"parse_header accepted n={header.n} for {intr.width}x{intr.height}")
             if not 0.0 <= header.min_m < header.max_m <= 1000.0 or header.t_us <= 0 or header.seq < 0:
                 raise Finding(f"parse_header accepted an out-of-range header {header}")
+            if header.clock not in protocol.CLOCKS:
+                raise Finding(f"parse_header accepted the time domain {header.clock!r}")
 
 
 # ----------------------------------------------------------------------------------------- config

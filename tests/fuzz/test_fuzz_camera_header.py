@@ -28,7 +28,8 @@ def test_random_bytes(data):
 
 
 @CI_SETTINGS
-@given(st.dictionaries(st.sampled_from(INT_FIELDS + FLOAT_FIELDS + ("enc", "extra")), any_value), st.data())
+@given(st.dictionaries(st.sampled_from(INT_FIELDS + FLOAT_FIELDS + ("enc", "clock", "extra")), any_value),
+       st.data())
 def test_header_maps_with_arbitrary_field_values(over, data):
     good = msgpack.unpackb(HEADER.seeds()[0][4:])
     d = {**good, **over}
