@@ -22,7 +22,7 @@ QUOTED = [
     ("waiting for camera frames", "coopd/daemon/status.py"),
     (" not reachable (", "coopd/camera/socket_source.py"),
     (" disconnected (", "coopd/camera/socket_source.py"),
-    (" ahead of the FC clock: dropped", "coopd/camera/socket_source.py"),
+    (" clock: dropped", "coopd/camera/socket_source.py"),
     ("camera time reference reset", "coopd/camera/socket_source.py"),
     ("implausible intrinsics", "coopd/camera/socket_source.py"),
     ("sending to ", "coopd/sharing/service.py"),
