@@ -19,6 +19,7 @@ from pathlib import Path
 
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
+from coopd.vehicle.connection import parse_connection
 
 DEFAULT_CONFIG_PATH = Path("/etc/coopd/coopd.toml")
 MAX_CONFIG_BYTES = 1 << 20
@@ -89,21 +90,13 @@ def _port_ok(text: str) -> bool:
     return text.isdigit() and 1 <= int(text) <= 65535
 
 
-_MAVLINK_NET = re.compile(r"^(udpin|udpout|udp|udpbcast|tcp|tcpin):([^:\s]+):(\d+)$")
-_MAVLINK_SERIAL = re.compile(r"^(/dev/\S+?)(,(\d+))?$")
-
-
 def _mavlink_connection(v: str):
-    m = _MAVLINK_NET.match(v)
-    if m:
-        return None if _port_ok(m.group(3)) else f"port {m.group(3)} of {v!r} is outside 1..65535"
-    m = _MAVLINK_SERIAL.match(v)
-    if m:
-        return None
-    return (
-        f"{v!r} is not a MAVLink connection string "
-        "(udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or /dev/DEVICE[,BAUD])"
-    )
+    """The transport's own parser (coopd.vehicle.connection): what passes here, the link opens."""
+    try:
+        parse_connection(v)
+    except ValueError as e:
+        return str(e)
+    return None
 
 
 def _camera_source(v: str):

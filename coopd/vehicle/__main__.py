@@ -16,7 +16,8 @@ from .link import LinkConfig, VehicleLink
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m coopd.vehicle", description=__doc__.splitlines()[0])
-    p.add_argument("connection", help="udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or /dev/tty…,BAUD")
+    p.add_argument("connection", help="MAVLink connection string: udpin:HOST:PORT, udpout:HOST:PORT, "
+                   "tcp:HOST:PORT, tcpin:HOST:PORT, /dev/DEVICE[,BAUD] or a MAVSDK URL (docs/vehicle.md)")
     p.add_argument("--camera", default=None, help="camera socket (path or tcp:HOST:PORT) to associate frames")
     p.add_argument("--seconds", type=float, default=10.0, help="how long to probe (default 10 s)")
     a = p.parse_args(argv)
