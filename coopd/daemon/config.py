@@ -19,11 +19,11 @@ from pathlib import Path
 
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
+from coopd.sharing.discovery import parse_targets
 from coopd.vehicle.connection import parse_connection
 
 DEFAULT_CONFIG_PATH = Path("/etc/coopd/coopd.toml")
 MAX_CONFIG_BYTES = 1 << 20
-MAX_PEER_TARGETS = 4096
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
@@ -119,25 +119,11 @@ def _ip_address(v: str):
 
 
 def _peer_spec(spec: str):
-    """One peers entry: 'HOST', 'HOST:PORT', 'A.B.C.D-A.B.C.E' or 'A.B.C.D-E' (an IPv4 range)."""
-    host = spec
-    if spec.count(":") == 1:
-        host, port = spec.rsplit(":", 1)
-        if not _port_ok(port):
-            return f"port of peer {spec!r} is outside 1..65535"
-    if not host or any(c.isspace() for c in host):
-        return f"peer {spec!r} has no usable host"
-    if "-" in host and re.fullmatch(r"[0-9.]+-[0-9.]+", host):
-        lo, hi = host.split("-", 1)
-        try:
-            first = ipaddress.IPv4Address(lo)
-            last = ipaddress.IPv4Address(hi if "." in hi else ".".join(lo.split(".")[:3] + [hi]))
-        except ValueError as e:
-            return f"peer range {spec!r}: {e}"
-        if int(last) < int(first):
-            return f"peer range {spec!r} runs backwards"
-        if int(last) - int(first) >= MAX_PEER_TARGETS:
-            return f"peer range {spec!r} holds more than {MAX_PEER_TARGETS} addresses"
+    """One peers entry, checked by the parser the sharing service expands it with."""
+    try:
+        parse_targets([spec], (1,))
+    except ValueError as e:
+        return str(e)
     return None
 
 
@@ -212,7 +198,7 @@ class SharingConfig:
     listen_host: str = _key("address the map server listens on", "0.0.0.0", _ip_address)
     port: int = _key("TCP port of the map server", 7400, _between(1, 65535))
     peers: tuple[str, ...] = _key(
-        "peers to scan: 'HOST', 'HOST:PORT', '10.42.0.1-10.42.0.20'", (), _each(_peer_spec)
+        "peers to scan: 'HOST', 'HOST:PORT', '10.42.0.1-10.42.0.20', '[fd00::7]:7401'", (), _each(_peer_spec)
     )
     peer_ports: tuple[int, ...] = _key(
         "ports scanned on peers without their own", (7400,), _each(_between(1, 65535))

@@ -11,6 +11,7 @@ import numpy as np
 
 from coopd.daemon.merger import NOT_AVAILABLE
 from coopd.daemon.threads import ROLE_NICE, read_nice
+from coopd.sharing.discovery import host_port
 
 
 def build(daemon) -> dict:
@@ -129,7 +130,7 @@ def peers(daemon) -> list[dict]:
         out.append(
             {
                 "vehicle_id": vid,
-                "address": f"{p['address']}:{p['port']}" if p.get("port") else p.get("address"),
+                "address": host_port(p["address"], p["port"]) if p.get("port") else p.get("address"),
                 "connected": p["connected"],
                 "map_version": None if stored is None else stored.version,
                 "map_bytes": None if stored is None else len(stored.data),
