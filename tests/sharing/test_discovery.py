@@ -9,6 +9,7 @@ import sharing_testmsg as tm
 from sharing_support import free_port, service, wait_until
 
 from coopd.sharing import discovery
+from tests.loopback import has_ipv6_loopback
 
 
 def test_parse_ranges_lists_and_ports():
@@ -153,15 +154,6 @@ def test_ipv4_peers_of_a_dual_stack_listener_are_known_by_their_ipv4_address():
     assert discovery.peer_address("::ffff:10.42.0.7") == "10.42.0.7"
     assert discovery.peer_address("fd00::7") == "fd00::7" and discovery.peer_address("10.0.0.1") == "10.0.0.1"
     assert discovery.host_port("fd00::7", 7400) == "[fd00::7]:7400"
-
-
-def has_ipv6_loopback() -> bool:
-    try:
-        with socket.socket(socket.AF_INET6, socket.SOCK_STREAM) as s:
-            s.bind(("::1", 0))
-        return True
-    except OSError:
-        return False
 
 
 @pytest.mark.skipif(not has_ipv6_loopback(), reason="no IPv6 loopback (::1) on this machine")

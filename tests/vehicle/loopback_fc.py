@@ -13,16 +13,6 @@ from pymavlink.dialects.v20 import common as mav
 LOOPBACK = {socket.AF_INET: "127.0.0.1", socket.AF_INET6: "::1"}
 
 
-def has_ipv6_loopback() -> bool:
-    """True when ::1 can be bound here (containers without IPv6 cannot)."""
-    try:
-        with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-            s.bind(("::1", 0))
-        return True
-    except OSError:
-        return False
-
-
 def free_port(family=socket.AF_INET, kind=socket.SOCK_DGRAM) -> int:
     """A port the kernel just handed out on loopback (free for UDP and, almost surely, TCP)."""
     with socket.socket(family, kind) as s:
