@@ -8,7 +8,6 @@ import tomllib
 from pathlib import Path
 
 import pytest
-from loopback_fc import LOOPBACK, LoopbackFc, PtyChannel, TcpChannel, UdpChannel, free_port
 from pymavlink.dialects.v20 import common as mav
 from sim_helpers import wait_until
 
@@ -24,6 +23,7 @@ from coopd.vehicle.transport import (
     parse_connection,
 )
 from tests.loopback import has_ipv6_loopback
+from tests.loopback_fc import LOOPBACK, LoopbackFc, PtyChannel, TcpChannel, UdpChannel, free_port
 
 REPO = Path(__file__).resolve().parents[2]
 
