@@ -141,6 +141,15 @@ class LoopbackFc:
             self.mav.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, system_status)
         )
 
+    def odometry(self, t_s: float, position_ned=(0.0, 0.0, -1.0)) -> None:
+        """ODOMETRY at FC time t_s: hovering at position_ned, level, facing north."""
+        nan21 = [float("nan")] * 21
+        self.mav.send(self.mav.odometry_encode(
+            int(t_s * 1e6), mav.MAV_FRAME_LOCAL_NED, mav.MAV_FRAME_BODY_FRD, *position_ned,
+            [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, nan21, nan21,
+            0, mav.MAV_ESTIMATOR_TYPE_VIO, 100,
+        ))
+
     def pump(self, timeout: float) -> None:
         """Read and parse what arrived within timeout s."""
         data = self.channel.recv(timeout)

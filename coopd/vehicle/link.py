@@ -14,6 +14,7 @@ from pymavlink.dialects.v20 import common as mav
 from .clock import ClockSync
 from .odometry import OdometryLimits, OdometryTracker
 from .pose_buffer import PoseBuffer, PoseSample
+from .statustext import StatusTextLimiter
 from .transport import Transport, make_transport
 
 log = logging.getLogger("coopd.vehicle")
@@ -104,6 +105,9 @@ class VehicleLink:
         self._foreign_autopilots: dict[int, list[float]] = {}  # other system id -> [first, last] heartbeat
         self._mismatch_logged: set[int] = set()
         self._open_error: str | None = None
+        self.system_status = mav.MAV_STATE_ACTIVE
+        """MAV_STATE in our HEARTBEAT; the daemon sets it from its health (BOOT, STANDBY, ACTIVE...)."""
+        self.statustexts = StatusTextLimiter()
         self._backoff = config.reopen_backoff_s[0]
         self._next_open = 0.0
         self._stop = threading.Event()
@@ -295,15 +299,23 @@ class VehicleLink:
 
     # -- outbound and state ---------------------------------------------------------------------
 
+    def statustext(self, severity: int, text: str) -> bool:
+        """Send a STATUSTEXT (MAV_SEVERITY_*, up to 50 ASCII bytes) to the FC, which forwards it to
+        the GCS; any thread may call it. False when the rate limit refused it (counted)."""
+        return self.statustexts.push(severity, text, time.monotonic())
+
     def _run_timers(self, now: float) -> None:
         cfg, t = self.config, self._timers
         if now - t["heartbeat"] >= cfg.heartbeat_period_s:
             t["heartbeat"] = now
             self.mav.send(
                 self.mav.heartbeat_encode(
-                    mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE
+                    mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, self.system_status
                 )
             )
+        for severity, text in self.statustexts.take():
+            self.mav.send(self.mav.statustext_encode(severity, text))
+            self.counters["statustext_sent"] += 1
         if self.target_system == 0 or self.state != "ok":
             return
         est = self.clock.estimate()
@@ -448,6 +460,8 @@ class VehicleLink:
         counters.update({f"odometry_{k}": v for k, v in dict(self.odometry.counters).items()})
         counters.update({f"clock_{k}": v for k, v in dict(self.clock.counters).items()})
         counters.update({f"transport_{k}": v for k, v in dict(self.transport.counters).items()})
+        limited = self.statustexts.counters
+        counters.update({f"statustext_{k}": v for k, v in limited.items() if k != "admitted"})
         return {
             "connection": self.config.connection,
             "link": self.state,

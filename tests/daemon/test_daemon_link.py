@@ -7,6 +7,7 @@ import threading
 
 import pytest
 from daemon_harness import in_process_memory_mb, workdir
+from pymavlink.dialects.v20 import common as mav
 
 from coopd.cli.daemon_commands import format_status
 from coopd.daemon import control
@@ -53,6 +54,50 @@ def test_coopctl_status_shows_a_system_id_mismatch_within_5_s(wd):
         assert fc.run_until(shown, seconds=5.0, period=0.2), status()["link"]
         text = format_status(status())
         assert "connecting: system id mismatch: expecting system 1 (vehicle.id), autopilot system 7" in text
+    finally:
+        fc.close()
+        stop_daemon(d, runner)
+
+
+def test_the_gcs_hears_odometry_lost_and_back_and_the_heartbeat_follows_health(wd):
+    """The FC (here a loopback pymavlink FC, which a real one forwards to the GCS) receives coopd's
+    STATUSTEXTs with their severities, and coopd's HEARTBEAT goes STANDBY (odometry, no camera yet)
+    -> CRITICAL (odometry stopped) -> STANDBY (back)."""
+    port = free_port()
+    d, runner = start_daemon(wd, port, vehicle_id=1)
+    fc = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=1)
+    clock = [10.0]
+
+    def odometry(f):
+        clock[0] += 0.05
+        f.odometry(clock[0])
+
+    def heard(severity, text):
+        return any(m.severity == severity and m.text == text for m in fc.messages("STATUSTEXT"))
+
+    def coopd_status():
+        ours = mav.MAV_COMP_ID_ONBOARD_COMPUTER
+        beats = [m for m in fc.messages("HEARTBEAT") if m.get_srcComponent() == ours]
+        return beats[-1].system_status if beats else None
+
+    def standby_and_back():
+        return (heard(mav.MAV_SEVERITY_NOTICE, "coopd: odometry back")
+                and coopd_status() == mav.MAV_STATE_STANDBY)
+
+    def critical_and_warned():
+        return (heard(mav.MAV_SEVERITY_WARNING, "coopd: no odometry, mapping paused")
+                and coopd_status() == mav.MAV_STATE_CRITICAL)
+
+    try:
+        assert fc.run_until(standby_and_back, seconds=10.0, period=0.05, send=odometry)
+        assert heard(mav.MAV_SEVERITY_NOTICE, "coopd: FC link up")
+        assert fc.run_until(critical_and_warned, seconds=10.0, period=0.05)
+        fc.received.clear()
+        # back within 10 s: the heartbeat says so; the same text again is held back (one per 10 s)
+        back = lambda: coopd_status() == mav.MAV_STATE_STANDBY  # noqa: E731
+        assert fc.run_until(back, seconds=10.0, period=0.05, send=odometry)
+        counters = d.link.status()["counters"]
+        assert counters["statustext_sent"] == 3 and counters["statustext_repeats"] == 1
     finally:
         fc.close()
         stop_daemon(d, runner)
