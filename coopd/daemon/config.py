@@ -149,6 +149,10 @@ class VehicleConfig:
 
     id: int = _key("MAVLink system id of this vehicle, also its id in the swarm", 1, _between(1, 255))
     mavlink: str = _key("flight-controller connection string", "udpin:0.0.0.0:14540", _mavlink_connection)
+    signing_key_file: str = _key(
+        "MAVLink 2 signing key file (64 hex characters); empty: no signing", "",
+        _absolute_path(allow_empty=True),
+    )
     link_timeout_s: float = _key(
         "no MAVLink message for this long: link lost", 1.5, _between(0.1, 60.0, " s")
     )

@@ -57,6 +57,7 @@ from coopd.sharing.wire import (
     with_version,
 )
 from coopd.vehicle import LinkConfig, VehicleLink
+from coopd.vehicle.signing import read_signing_key
 
 from . import status as status_report
 
@@ -140,7 +141,14 @@ class StartupError(RuntimeError):
 # ------------------------------------------------------------------------------ config adapters
 def link_config(config: Config) -> LinkConfig:
     v = config.vehicle
+    key = None
+    if v.signing_key_file:
+        try:
+            key = read_signing_key(v.signing_key_file)
+        except (OSError, ValueError) as e:
+            raise StartupError(f"vehicle.signing_key_file: {e}") from e
     return LinkConfig(
+        signing_key=key,
         connection=v.mavlink,
         source_system=v.id,
         target_system=v.id,

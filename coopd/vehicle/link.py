@@ -14,6 +14,7 @@ from pymavlink.dialects.v20 import common as mav
 from .clock import ClockSync
 from .odometry import OdometryLimits, OdometryTracker
 from .pose_buffer import PoseBuffer, PoseSample
+from .signing import KEY_BYTES, StreamSigning
 from .statustext import StatusTextLimiter
 from .transport import Transport, make_transport
 
@@ -51,8 +52,12 @@ class LinkConfig:
     pose_buffer_capacity: int = 1200
     pose_max_gap_s: float = 0.25
     odometry: OdometryLimits = field(default_factory=OdometryLimits)
+    signing_key: bytes | None = field(default=None, repr=False)
+    """MAVLink 2 signing key (32 bytes): sign ours, accept only validly signed FC messages; None: off."""
 
     def __post_init__(self):
+        if self.signing_key is not None and len(self.signing_key) != KEY_BYTES:
+            raise ValueError(f"signing_key must have {KEY_BYTES} bytes")
         if not (1 <= self.source_system <= 255 and 1 <= self.source_component <= 255):
             raise ValueError("source_system and source_component must be within 1..255")
         if not (0 <= self.target_system <= 255):
@@ -86,6 +91,7 @@ class VehicleLink:
             self._sink, srcSystem=config.source_system, srcComponent=config.source_component
         )
         self.mav.robust_parsing = True
+        self.signing = None if config.signing_key is None else StreamSigning(self.mav, config.signing_key)
         self.poses = PoseBuffer(config.pose_buffer_capacity, config.pose_max_gap_s)
         self.odometry = OdometryTracker(config.odometry)
         self.clock = ClockSync()
@@ -391,6 +397,12 @@ class VehicleLink:
                 self.target_system,
             )
 
+    def _signature_rejects(self) -> int:
+        if self.signing is None:
+            return 0
+        counts = self.signing.counters()
+        return counts["signature_bad"] + counts["unsigned_rejected"]
+
     def reason(self, now: float | None = None) -> tuple[str, str] | None:
         """Why the link is not up, as (code, sentence for operators); None while it is up."""
         now = time.monotonic() if now is None else now
@@ -407,6 +419,12 @@ class VehicleLink:
                 f"{other} is on the link ({self._foreign[other]} messages from it ignored)"
             )
         c = self.counters
+        rejected = self._signature_rejects()
+        if rejected and c["rx_messages"] == 0:
+            return "signature_rejected", (
+                f"{rejected} messages refused by MAVLink signing (unsigned, or signed with another key): "
+                "the FC needs the key of vehicle.signing_key_file"
+            )
         if self.state == "lost":
             quiet = now - max(self._last_rx, self._last_heartbeat)
             return "no_traffic", f"no message from system {self.target_system} for {quiet:.1f} s"
@@ -460,10 +478,13 @@ class VehicleLink:
         counters.update({f"odometry_{k}": v for k, v in dict(self.odometry.counters).items()})
         counters.update({f"clock_{k}": v for k, v in dict(self.clock.counters).items()})
         counters.update({f"transport_{k}": v for k, v in dict(self.transport.counters).items()})
+        if self.signing is not None:
+            counters.update({f"signing_{k}": v for k, v in self.signing.counters().items()})
         limited = self.statustexts.counters
         counters.update({f"statustext_{k}": v for k, v in limited.items() if k != "admitted"})
         return {
             "connection": self.config.connection,
+            "signing": self.signing is not None,
             "link": self.state,
             "reason": None if why is None else why[0],
             "reason_detail": None if why is None else why[1],

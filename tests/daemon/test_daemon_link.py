@@ -12,7 +12,7 @@ from pymavlink.dialects.v20 import common as mav
 from coopd.cli.daemon_commands import format_status
 from coopd.daemon import control
 from coopd.daemon.config import from_dict
-from coopd.daemon.service import Daemon
+from coopd.daemon.service import Daemon, StartupError, link_config
 from tests.loopback_fc import LoopbackFc, UdpChannel, free_port
 
 
@@ -101,3 +101,14 @@ def test_the_gcs_hears_odometry_lost_and_back_and_the_heartbeat_follows_health(w
     finally:
         fc.close()
         stop_daemon(d, runner)
+
+
+def test_signing_key_file_is_read_at_start(wd):
+    key_file = wd / "mavlink.key"
+    key_file.write_text(bytes(range(32)).hex() + "\n")
+    config = from_dict({"vehicle": {"signing_key_file": str(key_file)}})
+    assert link_config(config).signing_key == bytes(range(32))
+    assert link_config(from_dict({})).signing_key is None
+    key_file.write_text("not a key")
+    with pytest.raises(StartupError, match="vehicle.signing_key_file: .*64 hexadecimal"):
+        link_config(config)
