@@ -1,6 +1,6 @@
 """What the flight controller and the GCS learn about coopd: HEARTBEAT system_status following the
-daemon's health, and one STATUSTEXT per event that matters (FC link lost and up, odometry lost and
-back, camera stalled and back, a peer's map merged), sent through the FC link (rate-limited there).
+daemon's health, and one STATUSTEXT per event that matters (FC link up and lost, odometry ok and
+lost, camera frames ok and stalled, a peer's map merged), sent through the FC link (rate-limited there).
 
 | system_status | when |
 |---|---|
@@ -41,12 +41,12 @@ def health_events(prev: Health | None, cur: Health) -> list[tuple[int, str]]:
     if prev.odometry_fresh and not cur.odometry_fresh:
         out.append((mav.MAV_SEVERITY_WARNING, "coopd: no odometry, mapping paused"))
     elif cur.odometry_fresh and not prev.odometry_fresh:
-        out.append((mav.MAV_SEVERITY_NOTICE, "coopd: odometry back"))
+        out.append((mav.MAV_SEVERITY_NOTICE, "coopd: odometry ok"))
     if prev.camera_fresh and not cur.camera_fresh:
         age = "" if cur.camera_age_s is None else f", no frame for {cur.camera_age_s:.0f} s"
         out.append((mav.MAV_SEVERITY_WARNING, f"coopd: camera stalled{age}"))
     elif cur.camera_fresh and not prev.camera_fresh:
-        out.append((mav.MAV_SEVERITY_NOTICE, "coopd: camera frames back"))
+        out.append((mav.MAV_SEVERITY_NOTICE, "coopd: camera frames ok"))
     for vid in sorted(cur.merged - prev.merged):
         out.append((mav.MAV_SEVERITY_INFO, f"coopd: merge confirmed for vehicle {vid}"))
     return out
@@ -65,7 +65,8 @@ class GcsReporter:
 
     def __init__(self, link):
         self.link = link
-        self.prev: Health | None = None
+        self.prev = Health(link_ok=False, odometry_fresh=False, camera_fresh=False)
+        """Nothing works before the first sample: the GCS hears the link, odometry and camera come up."""
         self.odometry_seen = False
         self.camera_seen = False
         link.system_status = mav.MAV_STATE_BOOT

@@ -13,6 +13,7 @@ from coopd.cli.daemon_commands import format_status
 from coopd.daemon import control
 from coopd.daemon.config import from_dict
 from coopd.daemon.service import Daemon, StartupError, link_config
+from tests.camera.fake_driver import FakeDriver, frame_bytes, header
 from tests.loopback_fc import LoopbackFc, UdpChannel, free_port
 
 
@@ -23,10 +24,10 @@ def wd():
     shutil.rmtree(d, ignore_errors=True)
 
 
-def start_daemon(wd, mav_port: int, vehicle_id: int = 1, **vehicle_keys):
+def start_daemon(wd, mav_port: int, vehicle_id: int = 1, camera_stall_s: float = 2.0):
     config = from_dict({
-        "vehicle": {"id": vehicle_id, "mavlink": f"udpin:127.0.0.1:{mav_port}", **vehicle_keys},
-        "camera": {"source": f"socket:{wd}/no-camera.sock"},
+        "vehicle": {"id": vehicle_id, "mavlink": f"udpin:127.0.0.1:{mav_port}"},
+        "camera": {"source": f"socket:{wd}/camera.sock", "stall_timeout_s": camera_stall_s},
         "sharing": {"enabled": False},
         "daemon": {"state_dir": str(wd / "state"), "control_socket": str(wd / "control.sock"),
                    "memory_mb": in_process_memory_mb()},
@@ -81,7 +82,7 @@ def test_the_gcs_hears_odometry_lost_and_back_and_the_heartbeat_follows_health(w
         return beats[-1].system_status if beats else None
 
     def standby_and_back():
-        return (heard(mav.MAV_SEVERITY_NOTICE, "coopd: odometry back")
+        return (heard(mav.MAV_SEVERITY_NOTICE, "coopd: odometry ok")
                 and coopd_status() == mav.MAV_STATE_STANDBY)
 
     def critical_and_warned():
@@ -101,6 +102,52 @@ def test_the_gcs_hears_odometry_lost_and_back_and_the_heartbeat_follows_health(w
     finally:
         fc.close()
         stop_daemon(d, runner)
+
+
+def test_the_gcs_hears_a_camera_stall_and_the_heartbeat_goes_critical(wd):
+    """Odometry and camera frames flowing: ACTIVE; the camera driver stops sending (connection kept
+    open): a WARNING STATUSTEXT and CRITICAL."""
+    port = free_port()
+    fc_clock = [10.0]
+    sending = threading.Event()
+    sending.set()
+
+    def camera_script(conn, index, stopping):
+        seq = 0
+        while not stopping.is_set() and index == 0 and sending.is_set():
+            conn.sendall(frame_bytes(header(seq=seq, t_us=int(fc_clock[0] * 1e6))))
+            seq += 1
+            stopping.wait(0.1)
+        stopping.wait(10.0)  # silent, connection open: a stalled camera
+
+    driver = FakeDriver(str(wd / "camera.sock"), camera_script)
+    d, runner = start_daemon(wd, port, vehicle_id=1, camera_stall_s=0.5)
+    fc = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=1)
+
+    def odometry(f):
+        fc_clock[0] += 0.05
+        f.odometry(fc_clock[0])
+
+    def heard(severity, prefix):
+        return any(m.severity == severity and m.text.startswith(prefix) for m in fc.messages("STATUSTEXT"))
+
+    def coopd_status():
+        ours = mav.MAV_COMP_ID_ONBOARD_COMPUTER
+        beats = [m for m in fc.messages("HEARTBEAT") if m.get_srcComponent() == ours]
+        return beats[-1].system_status if beats else None
+
+    try:
+        active = lambda: (coopd_status() == mav.MAV_STATE_ACTIVE  # noqa: E731
+                          and heard(mav.MAV_SEVERITY_NOTICE, "coopd: camera frames ok"))
+        assert fc.run_until(active, seconds=15.0, period=0.05, send=odometry), d.health()
+        sending.clear()
+        stalled = lambda: (heard(mav.MAV_SEVERITY_WARNING, "coopd: camera stalled, no frame for")  # noqa: E731
+                           and coopd_status() == mav.MAV_STATE_CRITICAL)
+        assert fc.run_until(stalled, seconds=10.0, period=0.05, send=odometry), d.health()
+    finally:
+        fc.close()
+        stop_daemon(d, runner)
+        driver.close()
 
 
 def test_signing_key_file_is_read_at_start(wd):

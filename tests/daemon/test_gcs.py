@@ -18,11 +18,11 @@ def test_events_on_changes_only():
     lost = with_(stale, link_ok=False)
     assert health_events(stale, lost) == [(mav.MAV_SEVERITY_WARNING, "coopd: FC link lost")]
     assert health_events(lost, GOOD) == [(mav.MAV_SEVERITY_NOTICE, "coopd: FC link up"),
-                                         (mav.MAV_SEVERITY_NOTICE, "coopd: odometry back")]
+                                         (mav.MAV_SEVERITY_NOTICE, "coopd: odometry ok")]
     stalled = with_(GOOD, camera_fresh=False, camera_age_s=2.4)
     warning = (mav.MAV_SEVERITY_WARNING, "coopd: camera stalled, no frame for 2 s")
     assert health_events(GOOD, stalled) == [warning]
-    assert health_events(stalled, GOOD) == [(mav.MAV_SEVERITY_NOTICE, "coopd: camera frames back")]
+    assert health_events(stalled, GOOD) == [(mav.MAV_SEVERITY_NOTICE, "coopd: camera frames ok")]
     merged = with_(GOOD, merged=frozenset({4, 2}))
     assert health_events(GOOD, merged) == [(mav.MAV_SEVERITY_INFO, "coopd: merge confirmed for vehicle 2"),
                                            (mav.MAV_SEVERITY_INFO, "coopd: merge confirmed for vehicle 4")]
@@ -55,7 +55,13 @@ def test_reporter_boots_then_follows():
     assert link.system_status == mav.MAV_STATE_STANDBY and link.sent == []
     gcs.update(GOOD)
     assert link.system_status == mav.MAV_STATE_ACTIVE and [t for _, t in link.sent] == [
-        "coopd: FC link up", "coopd: odometry back", "coopd: camera frames back"]
+        "coopd: FC link up", "coopd: odometry ok", "coopd: camera frames ok"]
     gcs.update(with_(GOOD, camera_fresh=False, camera_age_s=3.0))
     assert link.system_status == mav.MAV_STATE_CRITICAL
     assert link.sent[-1][1] == "coopd: camera stalled, no frame for 3 s"
+
+
+def test_what_works_at_the_first_sample_is_announced():
+    link = FakeLink()
+    GcsReporter(link).update(GOOD)
+    assert [t for _, t in link.sent] == ["coopd: FC link up", "coopd: odometry ok", "coopd: camera frames ok"]
