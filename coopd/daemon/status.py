@@ -11,7 +11,7 @@ import numpy as np
 
 from coopd.daemon.merger import NOT_AVAILABLE
 from coopd.daemon.threads import ROLE_NICE, read_nice
-from coopd.sharing.discovery import host_port
+from coopd.net import host_port
 
 
 def build(daemon) -> dict:

@@ -8,6 +8,8 @@ import selectors
 import socket
 import time
 
+from coopd.net import family_of
+
 log = logging.getLogger("coopd.sharing")
 
 MAX_TARGETS = 4096
@@ -80,16 +82,6 @@ def _expand_hosts(host: str) -> list[str]:
     if int(last) - int(first) >= MAX_TARGETS:
         raise ValueError(f"address range {host} holds more than {MAX_TARGETS} addresses")
     return [str(ipaddress.IPv4Address(i)) for i in range(int(first), int(last) + 1)]
-
-
-def family_of(host: str) -> int:
-    """AF_INET6 for an IPv6 literal, else AF_INET (IPv4 literals and host names)."""
-    return socket.AF_INET6 if ":" in host else socket.AF_INET
-
-
-def host_port(host: str, port: int) -> str:
-    """'host:port', an IPv6 host in brackets ('[fd00::7]:7400'), as peers are written in coopd.toml."""
-    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 def peer_address(host: str) -> str:

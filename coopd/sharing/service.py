@@ -18,6 +18,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from coopd.net import host_port
+
 from . import discovery, mtp, versions
 from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
@@ -446,7 +448,7 @@ class SharingService:
         own = self._own
         snap = self.peers.snapshot()
         snap.update({
-            "vehicle_id": self.vehicle_id, "listen": discovery.host_port(*self.address),
+            "vehicle_id": self.vehicle_id, "listen": host_port(*self.address),
             "published_version": None if own is None else own[0],
             "published_result_version": None if self._own_result is None else self._own_result[0],
             "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
@@ -479,7 +481,7 @@ class _Sender:
             cause = getattr(e, "cause", "timeout" if isinstance(e, TimeoutError) else "cut")
             if not svc._stop.is_set():
                 svc.peers.failure(cause, self.vid, self.target[0])
-                where = discovery.host_port(*self.target)
+                where = host_port(*self.target)
                 if self.link.peer is None and svc._backoff.get(self.target, (0, 0))[1] > 0:
                     log.debug("handshake with %s failed again: %s: %s", where, cause, e)
                 else:
@@ -503,7 +505,7 @@ class _Sender:
             return
         svc.peers.hello(self.vid, hello.instance)
         svc.peers.seen(self.vid, *self.target, connected=True)
-        log.info("peer vehicle %d found at %s", self.vid, discovery.host_port(*self.target))
+        log.info("peer vehicle %d found at %s", self.vid, host_port(*self.target))
         while not svc._stop.is_set():
             for origin, version, message, kind in svc.pending_for(self.vid):
                 if svc._stop.is_set():

@@ -11,8 +11,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from coopd.net import family_of, host_port, listening_socket
+
 from . import mtp, swarmkey
-from .discovery import family_of, host_port, peer_address
+from .discovery import peer_address
 from .mtp import Hello, MtpError, Offer, Proof, Reassembler, Transfer
 from .peers import VEHICLE_IDS, PeerTable
 
@@ -233,11 +235,7 @@ class MapServer:
             return len(self._conns)
 
     def start(self) -> "MapServer":
-        family = family_of(self._bind[0])
-        ls = socket.socket(family, socket.SOCK_STREAM)
-        ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        if family == socket.AF_INET6:  # '::' serves IPv4 peers too, whatever net.ipv6.bindv6only says
-            ls.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
+        ls = listening_socket(family_of(self._bind[0]), socket.SOCK_STREAM)
         try:
             ls.bind(self._bind)
         except OSError:

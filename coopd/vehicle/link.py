@@ -379,7 +379,7 @@ class VehicleLink:
         busiest if several): vehicle.id and the FC's system id most likely differ."""
         if self.state == "ok" or self.config.target_system == 0:
             return None
-        recent = [sid for sid, (_, last) in self._foreign_autopilots.items()
+        recent = [sid for sid, (_, last) in list(self._foreign_autopilots.items())  # status() runs elsewhere
                   if now - last <= max(self.config.link_timeout_s, 3.0)]
         return max(recent, key=lambda sid: self._foreign[sid]) if recent else None
 

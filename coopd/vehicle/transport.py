@@ -9,6 +9,8 @@ import logging
 import select
 import socket
 
+from coopd.net import host_port, listening_socket
+
 from .connection import Endpoint, parse_connection
 
 log = logging.getLogger("coopd.vehicle")
@@ -28,10 +30,7 @@ def resolve(host: str, port: int, socktype: int, passive: bool) -> tuple[int, tu
 
 def _address(sockaddr) -> str:
     """host:port, IPv6 hosts in brackets, for log lines."""
-    if not sockaddr:
-        return "?"
-    host, port = sockaddr[0], sockaddr[1]
-    return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return host_port(str(sockaddr[0]), sockaddr[1]) if sockaddr else "?"
 
 
 class Transport(abc.ABC):
@@ -92,10 +91,12 @@ class SocketTransport(Transport):
             self.peer = s.getpeername()
         else:
             family, address = resolve(e.host, e.port, socket.SOCK_DGRAM, passive=e.kind == "udpin")
-            s = socket.socket(family, socket.SOCK_DGRAM)
+            if e.kind == "udpin":
+                s = listening_socket(family, socket.SOCK_DGRAM)
+            else:
+                s = socket.socket(family, socket.SOCK_DGRAM)
             try:
                 if e.kind == "udpin":
-                    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                     s.bind(address)
                     self.peer = None  # learnt from the first datagram, as MAVLink routers do
                 else:
@@ -196,9 +197,8 @@ class TcpServerTransport(Transport):
     def open(self) -> None:
         e = self.endpoint
         family, address = resolve(e.host, e.port, socket.SOCK_STREAM, passive=True)
-        s = socket.socket(family, socket.SOCK_STREAM)
+        s = listening_socket(family, socket.SOCK_STREAM)
         try:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             s.bind(address)
             s.listen(self.BACKLOG)
         except OSError:

@@ -8,6 +8,7 @@ import pytest
 import sharing_testmsg as tm
 from sharing_support import free_port, service, wait_until
 
+from coopd.net import host_port
 from coopd.sharing import discovery
 from tests.loopback import has_ipv6_loopback
 
@@ -153,7 +154,7 @@ def test_bad_ipv6_specs_are_refused_by_the_service_and_the_config_check(bad):
 def test_ipv4_peers_of_a_dual_stack_listener_are_known_by_their_ipv4_address():
     assert discovery.peer_address("::ffff:10.42.0.7") == "10.42.0.7"
     assert discovery.peer_address("fd00::7") == "fd00::7" and discovery.peer_address("10.0.0.1") == "10.0.0.1"
-    assert discovery.host_port("fd00::7", 7400) == "[fd00::7]:7400"
+    assert host_port("fd00::7", 7400) == "[fd00::7]:7400"
 
 
 @pytest.mark.skipif(not has_ipv6_loopback(), reason="no IPv6 loopback (::1) on this machine")
