@@ -375,9 +375,10 @@ class VehicleLink:
                 )
 
     def _other_autopilot(self, now: float) -> int | None:
-        """The system id of another autopilot heard on this link lately while ours is silent (the
-        busiest if several): vehicle.id and the FC's system id most likely differ."""
-        if self.state == "ok" or self.config.target_system == 0:
+        """The system id of another autopilot heard on this link lately while ours never spoke (the
+        busiest if several): vehicle.id and the FC's system id most likely differ. Once ours spoke,
+        the id is right: other autopilots on a shared radio or router are no mismatch."""
+        if self.state != "connecting" or self.config.target_system == 0 or self._last_rx > -math.inf:
             return None
         recent = [sid for sid, (_, last) in list(self._foreign_autopilots.items())  # status() runs elsewhere
                   if now - last <= max(self.config.link_timeout_s, 3.0)]

@@ -70,6 +70,26 @@ def test_a_second_vehicle_on_a_shared_link_is_no_mismatch():
         other.close()
 
 
+def test_another_autopilot_after_ours_went_silent_is_no_mismatch():
+    """Ours spoke, so vehicle.id is right: when it goes silent on a shared link, the link is lost,
+    not mismatched."""
+    port = free_port()
+    link = udp_link(port, vehicle_id=1)
+    ours = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=1)
+    other = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=2)
+    link.start()
+    try:
+        assert ours.run_until(lambda: link.state == "ok", seconds=5.0)
+        lost = lambda: link.state == "lost"  # noqa: E731
+        assert other.run_until(lost, seconds=5.0)
+        other.run_until(lambda: False, seconds=MISMATCH_LOG_AFTER_S + 0.5)
+        assert link.status()["reason"] == "no_traffic" and link.counters["rx_foreign"] > 0
+    finally:
+        link.stop()
+        ours.close()
+        other.close()
+
+
 def test_other_reasons():
     port = free_port()
     link = udp_link(port)
