@@ -12,6 +12,7 @@ from pymavlink.dialects.v20 import common as mav
 from coopd.cli.daemon_commands import format_status
 from coopd.daemon import control
 from coopd.daemon.config import from_dict
+from coopd.daemon.main import main
 from coopd.daemon.service import Daemon, StartupError, link_config
 from tests.camera.fake_driver import FakeDriver, frame_bytes, header
 from tests.loopback_fc import LoopbackFc, UdpChannel, free_port
@@ -159,3 +160,14 @@ def test_signing_key_file_is_read_at_start(wd):
     key_file.write_text("not a key")
     with pytest.raises(StartupError, match="vehicle.signing_key_file: .*64 hexadecimal"):
         link_config(config)
+
+
+def test_check_config_reads_the_signing_key_file(wd, capsys):
+    key_file = wd / "mavlink.key"
+    key_file.write_text("too short")
+    assert main(["--no-config", "--check-config", "--mavlink", "udpin://:14540"]) == 0
+    (wd / "c.toml").write_text(f'[vehicle]\nsigning_key_file = "{key_file}"\n')
+    assert main(["--config", str(wd / "c.toml"), "--check-config"]) == 2
+    assert "vehicle.signing_key_file" in capsys.readouterr().err
+    key_file.write_text(bytes(range(32)).hex())
+    assert main(["--config", str(wd / "c.toml"), "--check-config"]) == 0
