@@ -91,19 +91,17 @@ class SocketTransport(Transport):
             self.peer = s.getpeername()
         else:
             family, address = resolve(e.host, e.port, socket.SOCK_DGRAM, passive=e.kind == "udpin")
-            if e.kind == "udpin":
-                s = listening_socket(family, socket.SOCK_DGRAM)
-            else:
+            if e.kind == "udpout":
                 s = socket.socket(family, socket.SOCK_DGRAM)
-            try:
-                if e.kind == "udpin":
+                self.peer = address
+            else:
+                s = listening_socket(family, socket.SOCK_DGRAM)
+                try:
                     s.bind(address)
-                    self.peer = None  # learnt from the first datagram, as MAVLink routers do
-                else:
-                    self.peer = address
-            except OSError:
-                s.close()
-                raise
+                except OSError:
+                    s.close()
+                    raise
+                self.peer = None  # learnt from the first datagram, as MAVLink routers do
         s.setblocking(False)
         self.sock = s
 
