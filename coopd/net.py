@@ -3,6 +3,17 @@
 import socket
 
 
+def resolve(host: str, port: int, socktype: int, passive: bool = False) -> tuple[int, tuple]:
+    """(address family, socket address) of host:port, IPv4 or IPv6, the resolver's first answer;
+    OSError when the name does not resolve (a name may block in the resolver, a literal never)."""
+    flags = socket.AI_PASSIVE if passive else 0
+    infos = socket.getaddrinfo(host, port, socket.AF_UNSPEC, socktype, 0, flags | socket.AI_NUMERICSERV)
+    if not infos:
+        raise OSError(f"{host}: no address")
+    family, _, _, _, address = infos[0]
+    return family, address
+
+
 def family_of(host: str) -> int:
     """AF_INET6 for an IPv6 literal, else AF_INET (IPv4 literals and host names)."""
     return socket.AF_INET6 if ":" in host else socket.AF_INET

@@ -8,7 +8,7 @@ import selectors
 import socket
 import time
 
-from coopd.net import family_of
+from coopd.net import family_of, resolve
 
 log = logging.getLogger("coopd.sharing")
 
@@ -118,7 +118,10 @@ def _probe_batch(targets, timeout: float, source: str | None) -> list[tuple[tupl
     try:
         for target in targets:
             try:
-                family = family_of(target[0])
+                family, address = resolve(*target, socket.SOCK_STREAM)  # a name: IPv4 or IPv6
+            except OSError:  # an unresolvable name
+                continue
+            try:
                 s = socket.socket(family, socket.SOCK_STREAM)
             except OSError as e:  # out of file descriptors: probe the rest next scan
                 log.warning("discovery: cannot open a socket (%s); %d targets left for the next scan",
@@ -128,8 +131,8 @@ def _probe_batch(targets, timeout: float, source: str | None) -> list[tuple[tupl
             try:
                 if source and family_of(source) == family:  # a source of the other family cannot bind
                     s.bind((source, 0))
-                rc = s.connect_ex(target)
-            except OSError:  # e.g. an unresolvable name
+                rc = s.connect_ex(address)
+            except OSError:
                 s.close()
                 continue
             if rc not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK):

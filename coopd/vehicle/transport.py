@@ -9,23 +9,13 @@ import logging
 import select
 import socket
 
-from coopd.net import host_port, listening_socket
+from coopd.net import host_port, listening_socket, resolve
 
 from .connection import Endpoint, parse_connection
 
 log = logging.getLogger("coopd.vehicle")
 
 MAX_READ = 65536
-
-
-def resolve(host: str, port: int, socktype: int, passive: bool) -> tuple[int, tuple]:
-    """(address family, socket address) of host:port; OSError when the name does not resolve."""
-    flags = socket.AI_PASSIVE if passive else 0
-    infos = socket.getaddrinfo(host, port, socket.AF_UNSPEC, socktype, 0, flags | socket.AI_NUMERICSERV)
-    if not infos:
-        raise OSError(f"{host}: no address")
-    family, _, _, _, address = infos[0]
-    return family, address
 
 
 def _address(sockaddr) -> str:
