@@ -110,6 +110,7 @@ def format_status(s: dict) -> str:
         (
             "link",
             f"{link.get('state', '-')}"
+            + (f": {link['reason_detail']}" if link.get("reason_detail") else "")
             + (f", last message {_num(link.get('age_s'), 2)} s ago" if link.get("age_s") is not None else ""),
         )
     )

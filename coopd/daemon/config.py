@@ -21,10 +21,11 @@ from coopd.camera.realsense import RealSenseConfig
 from coopd.camera.socket_source import DEFAULT_CAMERA_SOCKET
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
+from coopd.sharing.discovery import parse_targets
+from coopd.vehicle.connection import parse_connection
 
 DEFAULT_CONFIG_PATH = Path("/etc/coopd/coopd.toml")
 MAX_CONFIG_BYTES = 1 << 20
-MAX_PEER_TARGETS = 4096
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
@@ -91,21 +92,13 @@ def _port_ok(text: str) -> bool:
     return text.isdigit() and 1 <= int(text) <= 65535
 
 
-_MAVLINK_NET = re.compile(r"^(udpin|udpout|udp|udpbcast|tcp|tcpin):([^:\s]+):(\d+)$")
-_MAVLINK_SERIAL = re.compile(r"^(/dev/\S+?)(,(\d+))?$")
-
-
 def _mavlink_connection(v: str):
-    m = _MAVLINK_NET.match(v)
-    if m:
-        return None if _port_ok(m.group(3)) else f"port {m.group(3)} of {v!r} is outside 1..65535"
-    m = _MAVLINK_SERIAL.match(v)
-    if m:
-        return None
-    return (
-        f"{v!r} is not a MAVLink connection string "
-        "(udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or /dev/DEVICE[,BAUD])"
-    )
+    """The transport's own parser (coopd.vehicle.connection): what passes here, the link opens."""
+    try:
+        parse_connection(v)
+    except ValueError as e:
+        return str(e)
+    return None
 
 
 def _camera_source(v: str):
@@ -128,25 +121,11 @@ def _ip_address(v: str):
 
 
 def _peer_spec(spec: str):
-    """One peers entry: 'HOST', 'HOST:PORT', 'A.B.C.D-A.B.C.E' or 'A.B.C.D-E' (an IPv4 range)."""
-    host = spec
-    if spec.count(":") == 1:
-        host, port = spec.rsplit(":", 1)
-        if not _port_ok(port):
-            return f"port of peer {spec!r} is outside 1..65535"
-    if not host or any(c.isspace() for c in host):
-        return f"peer {spec!r} has no usable host"
-    if "-" in host and re.fullmatch(r"[0-9.]+-[0-9.]+", host):
-        lo, hi = host.split("-", 1)
-        try:
-            first = ipaddress.IPv4Address(lo)
-            last = ipaddress.IPv4Address(hi if "." in hi else ".".join(lo.split(".")[:3] + [hi]))
-        except ValueError as e:
-            return f"peer range {spec!r}: {e}"
-        if int(last) < int(first):
-            return f"peer range {spec!r} runs backwards"
-        if int(last) - int(first) >= MAX_PEER_TARGETS:
-            return f"peer range {spec!r} holds more than {MAX_PEER_TARGETS} addresses"
+    """One peers entry, checked by the parser the sharing service expands it with."""
+    try:
+        parse_targets([spec], (1,))
+    except ValueError as e:
+        return str(e)
     return None
 
 
@@ -172,6 +151,10 @@ class VehicleConfig:
 
     id: int = _key("MAVLink system id of this vehicle, also its id in the swarm", 1, _between(1, 255))
     mavlink: str = _key("flight-controller connection string", "udpin:0.0.0.0:14540", _mavlink_connection)
+    signing_key_file: str = _key(
+        "MAVLink 2 signing key file (64 hex characters); empty: no signing", "",
+        _absolute_path(allow_empty=True),
+    )
     link_timeout_s: float = _key(
         "no MAVLink message for this long: link lost", 1.5, _between(0.1, 60.0, " s")
     )
@@ -222,7 +205,7 @@ class SharingConfig:
     listen_host: str = _key("address the map server listens on", "0.0.0.0", _ip_address)
     port: int = _key("TCP port of the map server", 7400, _between(1, 65535))
     peers: tuple[str, ...] = _key(
-        "peers to scan: 'HOST', 'HOST:PORT', '10.42.0.1-10.42.0.20'", (), _each(_peer_spec)
+        "peers to scan: 'HOST', 'HOST:PORT', '10.42.0.1-10.42.0.20', '[fd00::7]:7401'", (), _each(_peer_spec)
     )
     peer_ports: tuple[int, ...] = _key(
         "ports scanned on peers without their own", (7400,), _each(_between(1, 65535))

@@ -87,6 +87,14 @@ def main(argv=None, fast_exit: bool = True) -> int:
         print(f"coopd: configuration: {e}", file=sys.stderr)
         return EXIT_CONFIG
     if args.check_config:
+        if config.vehicle.signing_key_file:  # read at start too: a key that fails here would stop it
+            from coopd.vehicle.signing import read_signing_key
+
+            try:
+                read_signing_key(config.vehicle.signing_key_file)
+            except (OSError, ValueError) as e:
+                print(f"coopd: configuration: vehicle.signing_key_file: {e}", file=sys.stderr)
+                return EXIT_CONFIG
         print(f"coopd: configuration OK (vehicle {config.vehicle.id})")
         return EXIT_OK
     setup_logging(config.daemon.log_level)

@@ -38,7 +38,8 @@ from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserve
 from coopd.daemon.config import Config
 from coopd.daemon.control import DEFAULT_MAX_REPLY_BUFFER, BlobReply, CommandFailed, ControlServer
-from coopd.daemon.merger import Merger, find_merge_all, mergeable_cells
+from coopd.daemon.gcs import GcsReporter, Health
+from coopd.daemon.merger import Merger, find_merge_all, in_global_map, mergeable_cells
 from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.threads import ThreadPriorities, WorkerProgress
 from coopd.geometry import euler_to_matrix, matrix_to_quat
@@ -63,6 +64,7 @@ from coopd.sharing.wire import (
     with_version,
 )
 from coopd.vehicle import LinkConfig, VehicleLink
+from coopd.vehicle.signing import read_signing_key
 
 from . import status as status_report
 
@@ -146,7 +148,14 @@ class StartupError(RuntimeError):
 # ------------------------------------------------------------------------------ config adapters
 def link_config(config: Config) -> LinkConfig:
     v = config.vehicle
+    key = None
+    if v.signing_key_file:
+        try:
+            key = read_signing_key(v.signing_key_file)
+        except (OSError, ValueError) as e:
+            raise StartupError(f"vehicle.signing_key_file: {e}") from e
     return LinkConfig(
+        signing_key=key,
         connection=v.mavlink,
         source_system=v.id,
         target_system=v.id,
@@ -263,6 +272,7 @@ class Daemon:
         self._epoch_at = time.monotonic()
         self._own_refusal: tuple[int, int, int] | None = None
         self.link = VehicleLink(link_config(config))
+        self.gcs = GcsReporter(self.link)
         self.slot: LatestSlot = LatestSlot()
         self.camera = self._make_camera()
         self.associator = FrameAssociator(self.link, camera_mount(config), config.camera.pose_wait_s)
@@ -520,6 +530,7 @@ class Daemon:
             now = time.monotonic()
             self.progress.beat("main")
             self.healthy()  # logs a worker that stopped making progress, also without a watchdog
+            self.gcs.update(self.health())
             self._account_memory()
             if now >= self._next_checkpoint:
                 self._next_checkpoint = now + self.config.daemon.checkpoint_period_s
@@ -531,6 +542,19 @@ class Daemon:
                 self._next_log = now + LOG_PERIOD_S
                 log.info("%s", status_report.log_line(self))
             self._stop.wait(MAIN_PERIOD_S)
+
+    def health(self) -> Health:
+        """What the FC and GCS are told about (coopd.daemon.gcs): link, odometry, camera, merges."""
+        camera = self.camera.status() if hasattr(self.camera, "status") else {}
+        age = camera.get("last_frame_age_s")
+        merged = frozenset(vid for vid, o in list(self.merger.offsets.items()) if in_global_map(o))
+        return Health(
+            link_ok=self.link.state == "ok",
+            odometry_fresh=not self.link.odometry_stale(),
+            camera_fresh=age is not None and age <= self.config.camera.stall_timeout_s,
+            camera_age_s=age,
+            merged=merged,
+        )
 
     def shutdown(self) -> None:
         """Stop every stage, write the final checkpoint, remove the control socket."""

@@ -11,6 +11,7 @@ import numpy as np
 
 from coopd.daemon.merger import NOT_AVAILABLE
 from coopd.daemon.threads import ROLE_NICE, read_nice
+from coopd.net import host_port
 
 
 def build(daemon) -> dict:
@@ -31,6 +32,8 @@ def build(daemon) -> dict:
         "uptime_s": round(time.monotonic() - daemon.started, 1),
         "link": {
             "state": link["link"],
+            "reason": link["reason"],
+            "reason_detail": link["reason_detail"],
             "age_s": link["heartbeat_age_s"],
             "odometry_age_s": link["odometry_age_s"],
             "odometry_stale": link["odometry_stale"],
@@ -129,7 +132,7 @@ def peers(daemon) -> list[dict]:
         out.append(
             {
                 "vehicle_id": vid,
-                "address": f"{p['address']}:{p['port']}" if p.get("port") else p.get("address"),
+                "address": host_port(p["address"], p["port"]) if p.get("port") else p.get("address"),
                 "connected": p["connected"],
                 "map_version": None if stored is None else stored.version,
                 "map_bytes": None if stored is None else len(stored.data),
@@ -170,7 +173,8 @@ def global_note(daemon) -> str:
 def summary(daemon) -> str:
     """One short line for sd_notify STATUS= (systemctl status shows it)."""
     grid = daemon.mapper.grid
-    link = daemon.link.state
+    why = daemon.link.reason()
+    link = daemon.link.state + ("" if why is None else f" ({why[0]})")
     paused = " (paused: odometry stale)" if daemon.link.odometry_stale() else ""
     n_peers = 0 if daemon.sharing is None else len(daemon.sharing.peers.vehicle_ids())
     m = daemon.merger

@@ -18,6 +18,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from coopd.net import host_port
+
 from . import discovery, mtp, versions
 from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
@@ -40,7 +42,7 @@ class SharingConfig:
     listen_host: str = "0.0.0.0"
     port: int = DEFAULT_PORT
     peers: tuple[str, ...] = ()
-    """Addresses to scan: '10.42.0.1-10.42.0.20', '10.42.0.7', 'host:7401'."""
+    """Addresses to scan: '10.42.0.1-10.42.0.20', '10.42.0.7', 'host:7401', 'fd00::7', '[fd00::7]:7401'."""
     peer_ports: tuple[int, ...] = (DEFAULT_PORT,)
     scan_period: float = 2.0
     grace_period: float = 30.0
@@ -380,7 +382,7 @@ class SharingService:
                     and self._backoff.get(t, (0.0, 0))[0] <= now
                     and not (t in self._alias_targets and self.peers.is_connected(self._alias_targets[t]))]
         found = 0
-        source = None if self.config.listen_host in ("", "0.0.0.0") else self.config.listen_host
+        source = None if self.config.listen_host in ("", "0.0.0.0", "::") else self.config.listen_host
         for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
             link = PeerLink(sock, self.config.transport, self.vehicle_id, target[0], self._server.instance)
             sender = _Sender(self, link, target)
@@ -446,7 +448,7 @@ class SharingService:
         own = self._own
         snap = self.peers.snapshot()
         snap.update({
-            "vehicle_id": self.vehicle_id, "listen": "{}:{}".format(*self.address),
+            "vehicle_id": self.vehicle_id, "listen": host_port(*self.address),
             "published_version": None if own is None else own[0],
             "published_result_version": None if self._own_result is None else self._own_result[0],
             "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
@@ -479,11 +481,11 @@ class _Sender:
             cause = getattr(e, "cause", "timeout" if isinstance(e, TimeoutError) else "cut")
             if not svc._stop.is_set():
                 svc.peers.failure(cause, self.vid, self.target[0])
+                where = host_port(*self.target)
                 if self.link.peer is None and svc._backoff.get(self.target, (0, 0))[1] > 0:
-                    log.debug("handshake with %s:%d failed again: %s: %s", *self.target, cause, e)
+                    log.debug("handshake with %s failed again: %s: %s", where, cause, e)
                 else:
-                    log.warning("sending to %s:%d (vehicle %s) failed: %s: %s", *self.target, self.vid,
-                                cause, e)
+                    log.warning("sending to %s (vehicle %s) failed: %s: %s", where, self.vid, cause, e)
         finally:
             self.link.close()
             if self.vid is not None:
@@ -503,7 +505,7 @@ class _Sender:
             return
         svc.peers.hello(self.vid, hello.instance)
         svc.peers.seen(self.vid, *self.target, connected=True)
-        log.info("peer vehicle %d found at %s:%d", self.vid, *self.target)
+        log.info("peer vehicle %d found at %s", self.vid, host_port(*self.target))
         while not svc._stop.is_set():
             for origin, version, message, kind in svc.pending_for(self.vid):
                 if svc._stop.is_set():

@@ -11,7 +11,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from coopd.net import family_of, host_port, listening_socket
+
 from . import mtp, swarmkey
+from .discovery import peer_address
 from .mtp import Hello, MtpError, Offer, Proof, Reassembler, Transfer
 from .peers import VEHICLE_IDS, PeerTable
 
@@ -232,16 +235,19 @@ class MapServer:
             return len(self._conns)
 
     def start(self) -> "MapServer":
-        ls = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        ls.bind(self._bind)
+        ls = listening_socket(family_of(self._bind[0]), socket.SOCK_STREAM)
+        try:
+            ls.bind(self._bind)
+        except OSError:
+            ls.close()
+            raise
         ls.listen(128)
         ls.settimeout(0.2)
         self._listener = ls
         self._accept_thread = threading.Thread(target=self._accept_loop, name="coopd-share-server",
                                                daemon=True)
         self._accept_thread.start()
-        log.info("map server listening on %s:%d (block size %d, key %s)", *self.address,
+        log.info("map server listening on %s (block size %d, key %s)", host_port(*self.address),
                  self.settings.block_size, "on" if self.settings.swarm_key else "off")
         return self
 
@@ -265,6 +271,7 @@ class MapServer:
         while not self._stop.is_set():
             try:
                 conn, addr = self._listener.accept()
+                addr = (peer_address(addr[0]), addr[1])
             except TimeoutError:
                 continue
             except OSError:

@@ -14,6 +14,8 @@ from pymavlink.dialects.v20 import common as mav
 from .clock import ClockSync
 from .odometry import OdometryLimits, OdometryTracker
 from .pose_buffer import PoseBuffer, PoseSample
+from .signing import KEY_BYTES, StreamSigning
+from .statustext import StatusTextLimiter
 from .transport import Transport, make_transport
 
 log = logging.getLogger("coopd.vehicle")
@@ -22,6 +24,8 @@ READ_TIMEOUT_S = 0.02
 MAX_MESSAGES_PER_READ = 512
 FC_REBOOT_BACKSTEP_S = 1.0
 FALLBACK_AFTER_S = 1.0
+MISMATCH_LOG_AFTER_S = 2.0
+"""An autopilot with another system id heard for this long while ours is silent: logged (once)."""
 NON_VEHICLE_TYPES = (
     mav.MAV_TYPE_GCS,
     mav.MAV_TYPE_ONBOARD_CONTROLLER,
@@ -48,8 +52,12 @@ class LinkConfig:
     pose_buffer_capacity: int = 1200
     pose_max_gap_s: float = 0.25
     odometry: OdometryLimits = field(default_factory=OdometryLimits)
+    signing_key: bytes | None = field(default=None, repr=False)
+    """MAVLink 2 signing key (32 bytes): sign ours, accept only validly signed FC messages; None: off."""
 
     def __post_init__(self):
+        if self.signing_key is not None and len(self.signing_key) != KEY_BYTES:
+            raise ValueError(f"signing_key must have {KEY_BYTES} bytes")
         if not (1 <= self.source_system <= 255 and 1 <= self.source_component <= 255):
             raise ValueError("source_system and source_component must be within 1..255")
         if not (0 <= self.target_system <= 255):
@@ -83,6 +91,7 @@ class VehicleLink:
             self._sink, srcSystem=config.source_system, srcComponent=config.source_component
         )
         self.mav.robust_parsing = True
+        self.signing = None if config.signing_key is None else StreamSigning(self.mav, config.signing_key)
         self.poses = PoseBuffer(config.pose_buffer_capacity, config.pose_max_gap_s)
         self.odometry = OdometryTracker(config.odometry)
         self.clock = ClockSync()
@@ -98,6 +107,13 @@ class VehicleLink:
         self._last_odometry_msg = -math.inf
         self._timers = {"heartbeat": -math.inf, "timesync": -math.inf, "streams": -math.inf}
         self._streams_flowing = False
+        self._foreign: Counter = Counter()  # messages per other system id (at most 256 keys)
+        self._foreign_autopilots: dict[int, list[float]] = {}  # other system id -> [first, last] heartbeat
+        self._mismatch_logged: set[int] = set()
+        self._open_error: str | None = None
+        self.system_status = mav.MAV_STATE_ACTIVE
+        """MAV_STATE in our HEARTBEAT; the daemon sets it from its health (BOOT, STANDBY, ACTIVE...)."""
+        self.statustexts = StatusTextLimiter()
         self._backoff = config.reopen_backoff_s[0]
         self._next_open = 0.0
         self._stop = threading.Event()
@@ -154,6 +170,7 @@ class VehicleLink:
             self._ingest(data, time.monotonic())
         now = time.monotonic()
         self._update_state(now)
+        self._check_mismatch(now)
         self._run_timers(now)
 
     def _try_open(self, now: float) -> None:
@@ -163,9 +180,11 @@ class VehicleLink:
             self.transport.open()
             self.transport.counters["reopens"] += 1
             self._backoff = self.config.reopen_backoff_s[0]
+            self._open_error = None
             log.info("MAVLink transport open: %s", self.config.connection)
         except OSError as e:
             self.counters["open_failures"] += 1
+            self._open_error = str(e)
             self._next_open = now + self._backoff
             log.warning(
                 "MAVLink transport %s not available (%s); retry in %.1f s",
@@ -220,6 +239,9 @@ class VehicleLink:
             return False
         if src != self.target_system:
             self.counters["rx_foreign"] += 1
+            self._foreign[src] += 1
+            if kind == "HEARTBEAT" and self._is_autopilot(m):
+                self._foreign_autopilots.setdefault(src, [now, now])[1] = now
             return False
         self.counters["rx_messages"] += 1
         self._last_rx = now
@@ -283,15 +305,23 @@ class VehicleLink:
 
     # -- outbound and state ---------------------------------------------------------------------
 
+    def statustext(self, severity: int, text: str) -> bool:
+        """Send a STATUSTEXT (MAV_SEVERITY_*, up to 50 ASCII bytes) to the FC, which forwards it to
+        the GCS; any thread may call it. False when the rate limit refused it (counted)."""
+        return self.statustexts.push(severity, text, time.monotonic())
+
     def _run_timers(self, now: float) -> None:
         cfg, t = self.config, self._timers
         if now - t["heartbeat"] >= cfg.heartbeat_period_s:
             t["heartbeat"] = now
             self.mav.send(
                 self.mav.heartbeat_encode(
-                    mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE
+                    mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, self.system_status
                 )
             )
+        for severity, text in self.statustexts.take():
+            self.mav.send(self.mav.statustext_encode(severity, text))
+            self.counters["statustext_sent"] += 1
         if self.target_system == 0 or self.state != "ok":
             return
         est = self.clock.estimate()
@@ -344,6 +374,71 @@ class VehicleLink:
                     now - max(self._last_heartbeat, self._last_rx),
                 )
 
+    def _other_autopilot(self, now: float) -> int | None:
+        """The system id of another autopilot heard on this link lately while ours never spoke (the
+        busiest if several): vehicle.id and the FC's system id most likely differ. Once ours spoke,
+        the id is right: other autopilots on a shared radio or router are no mismatch."""
+        if self.state != "connecting" or self.config.target_system == 0 or self._last_rx > -math.inf:
+            return None
+        recent = [sid for sid, (_, last) in list(self._foreign_autopilots.items())  # status() runs elsewhere
+                  if now - last <= max(self.config.link_timeout_s, 3.0)]
+        return max(recent, key=lambda sid: self._foreign[sid]) if recent else None
+
+    def _check_mismatch(self, now: float) -> None:
+        other = self._other_autopilot(now)
+        if other is None or other in self._mismatch_logged:
+            return
+        if now - self._foreign_autopilots[other][0] >= MISMATCH_LOG_AFTER_S:
+            self._mismatch_logged.add(other)
+            log.warning(
+                "FC link %s: no message from system %d (vehicle.id), but autopilot system %d is on %s "
+                "(%d messages from it ignored): if that is this vehicle's FC, set vehicle.id = %d or the "
+                "FC's system id (PX4 MAV_SYS_ID, ArduPilot SYSID_THISMAV) to %d",
+                self.state, self.target_system, other, self.config.connection, self._foreign[other], other,
+                self.target_system,
+            )
+
+    def _signature_rejects(self) -> int:
+        if self.signing is None:
+            return 0
+        counts = self.signing.counters()
+        return counts["signature_bad"] + counts["unsigned_rejected"]
+
+    def reason(self, now: float | None = None) -> tuple[str, str] | None:
+        """Why the link is not up, as (code, sentence for operators); None while it is up."""
+        now = time.monotonic() if now is None else now
+        if self.state == "ok":
+            return None
+        if not self.transport.is_open:
+            if self._open_error is None:
+                return "transport_unavailable", f"opening {self.config.connection}"
+            return "transport_unavailable", f"cannot open {self.config.connection}: {self._open_error}"
+        other = self._other_autopilot(now)
+        if other is not None:
+            return "system_id_mismatch", (
+                f"system id mismatch: expecting system {self.target_system} (vehicle.id), autopilot system "
+                f"{other} is on the link ({self._foreign[other]} messages from it ignored)"
+            )
+        c = self.counters
+        rejected = self._signature_rejects()
+        if rejected and c["rx_messages"] == 0:
+            return "signature_rejected", (
+                f"{rejected} messages refused by MAVLink signing (unsigned, or signed with another key): "
+                "the FC needs the key of vehicle.signing_key_file"
+            )
+        if self.state == "lost":
+            quiet = now - max(self._last_rx, self._last_heartbeat)
+            return "no_traffic", f"no message from system {self.target_system} for {quiet:.1f} s"
+        if c["rx_bytes"] == 0:
+            return "no_traffic", f"nothing received on {self.config.connection}"
+        if c["rx_messages"] == 0 and c["rx_foreign"] == 0 and c["rx_before_lock"] == 0:
+            return "no_valid_mavlink", (
+                f"{c['rx_bytes']} bytes received but no valid MAVLink message (baud rate? protocol?)"
+            )
+        if self.target_system:
+            return "no_autopilot", f"MAVLink traffic, but nothing from system {self.target_system}"
+        return "no_autopilot", "MAVLink traffic, but no autopilot heartbeat"
+
     # -- what other stages read -----------------------------------------------------------------
 
     def odometry_stale(self, now: float | None = None) -> bool:
@@ -379,13 +474,21 @@ class VehicleLink:
         est = self.clock.estimate()
         latest = self.poses.latest()
         span = self.poses.span()
+        why = self.reason(now)
         counters = dict(self.counters)
         counters.update({f"odometry_{k}": v for k, v in dict(self.odometry.counters).items()})
         counters.update({f"clock_{k}": v for k, v in dict(self.clock.counters).items()})
         counters.update({f"transport_{k}": v for k, v in dict(self.transport.counters).items()})
+        if self.signing is not None:
+            counters.update({f"signing_{k}": v for k, v in self.signing.counters().items()})
+        limited = self.statustexts.counters
+        counters.update({f"statustext_{k}": v for k, v in limited.items() if k != "admitted"})
         return {
             "connection": self.config.connection,
+            "signing": self.signing is not None,
             "link": self.state,
+            "reason": None if why is None else why[0],
+            "reason_detail": None if why is None else why[1],
             "target_system": self.target_system,
             "heartbeat_age_s": None
             if self._last_heartbeat == -math.inf

@@ -1,4 +1,5 @@
-"""Byte transports behind MAVLink connection strings: udpin/udpout/tcp/serial, all non-blocking."""
+"""Byte transports behind MAVLink connection strings (coopd.vehicle.connection): udpin, udpout, tcp,
+tcpin and serial, all non-blocking."""
 
 from __future__ import annotations
 
@@ -7,44 +8,19 @@ import contextlib
 import logging
 import select
 import socket
-from dataclasses import dataclass
+
+from coopd.net import host_port, listening_socket, resolve
+
+from .connection import Endpoint, parse_connection
 
 log = logging.getLogger("coopd.vehicle")
 
 MAX_READ = 65536
 
 
-@dataclass(frozen=True)
-class Endpoint:
-    """A parsed connection string."""
-
-    kind: str  # "udpin", "udpout", "tcp", "serial"
-    host: str = ""
-    port: int = 0
-    device: str = ""
-    baud: int = 0
-
-
-def parse_connection(text: str) -> Endpoint:
-    """Parse `udpin:0.0.0.0:14540`, `udp:…` (= udpin), `udpout:host:port`, `tcp:host:port`,
-    `/dev/ttyACM0,921600` or `serial:/dev/ttyACM0:921600`; raises ValueError with the reason."""
-    if not isinstance(text, str) or not text or len(text) > 256:
-        raise ValueError("connection string must be a non-empty string of at most 256 characters")
-    kind, _, rest = text.partition(":")
-    if kind in ("udp", "udpin", "udpout", "tcp"):
-        host, _, port = rest.rpartition(":")
-        if not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise ValueError(f"{text!r}: expected {kind}:host:port with a port in 1..65535")
-        return Endpoint("udpin" if kind == "udp" else kind, host, int(port))
-    if kind == "serial":
-        device, _, baud = rest.rpartition(":")
-    elif text.startswith("/") or text.upper().startswith("COM"):
-        device, _, baud = text.partition(",")
-    else:
-        raise ValueError(f"{text!r}: unknown connection type (udpin:, udpout:, tcp:, serial:, /dev/…,baud)")
-    if not device or not baud.isdigit() or not 50 <= int(baud) <= 20_000_000:
-        raise ValueError(f"{text!r}: serial needs a device and a baud rate, e.g. /dev/ttyACM0,921600")
-    return Endpoint("serial", device=device, baud=int(baud))
+def _address(sockaddr) -> str:
+    """host:port, IPv6 hosts in brackets, for log lines."""
+    return host_port(str(sockaddr[0]), sockaddr[1]) if sockaddr else "?"
 
 
 class Transport(abc.ABC):
@@ -83,7 +59,7 @@ class Transport(abc.ABC):
 
 
 class SocketTransport(Transport):
-    """UDP (server or client) and TCP (client) over one socket."""
+    """UDP (udpin: listen, udpout: send to) and TCP client over one socket, IPv4 or IPv6."""
 
     def __init__(self, endpoint: Endpoint, connect_timeout: float = 0.5):
         super().__init__(endpoint)
@@ -97,20 +73,25 @@ class SocketTransport(Transport):
         return self.sock is not None
 
     def open(self) -> None:
-        """Bind or connect; raises OSError if that is impossible right now."""
+        """Bind or connect; raises OSError if that is impossible right now (name resolution included)."""
         e = self.endpoint
         if e.kind == "tcp":
             s = socket.create_connection((e.host, e.port), timeout=self.connect_timeout)
             s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            self.peer = (e.host, e.port)
+            self.peer = s.getpeername()
         else:
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            if e.kind == "udpin":
-                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                s.bind((e.host, e.port))
-                self.peer = None  # learnt from the first datagram, as MAVLink routers do
+            family, address = resolve(e.host, e.port, socket.SOCK_DGRAM, passive=e.kind == "udpin")
+            if e.kind == "udpout":
+                s = socket.socket(family, socket.SOCK_DGRAM)
+                self.peer = address
             else:
-                self.peer = (socket.gethostbyname(e.host), e.port)
+                s = listening_socket(family, socket.SOCK_DGRAM)
+                try:
+                    s.bind(address)
+                except OSError:
+                    s.close()
+                    raise
+                self.peer = None  # learnt from the first datagram, as MAVLink routers do
         s.setblocking(False)
         self.sock = s
 
@@ -129,7 +110,7 @@ class SocketTransport(Transport):
             if self.endpoint.kind == "tcp":
                 data = s.recv(MAX_READ)
                 if not data:
-                    log.warning("MAVLink TCP peer %s:%d closed the connection", *self.peer)
+                    log.warning("MAVLink TCP peer %s closed the connection", _address(self.peer))
                     self.close()
                 return data
             data, self.last_source = s.recvfrom(MAX_READ)
@@ -150,7 +131,9 @@ class SocketTransport(Transport):
             if self.peer is not None:
                 self.counters["peer_changes"] += 1
                 if self.counters["peer_changes"] <= 5:
-                    log.warning("MAVLink peer moved from %s:%d to %s:%d", *self.peer, *self.last_source)
+                    log.warning(
+                        "MAVLink peer moved from %s to %s", _address(self.peer), _address(self.last_source)
+                    )
             self.peer = self.last_source
 
     def write(self, data: bytes) -> None:
@@ -177,6 +160,119 @@ class SocketTransport(Transport):
             with contextlib.suppress(OSError):
                 self.sock.close()
         self.sock = None
+
+
+class TcpServerTransport(Transport):
+    """tcpin: listen and serve one connection at a time (the FC, or a MAVLink router, connects to us).
+    A newer connection replaces the current one until that one carried the FC's heartbeat
+    (accept_source); after that newcomers are refused and counted, so a stranger can neither
+    displace the FC nor hold the port by connecting first."""
+
+    BACKLOG = 4
+
+    def __init__(self, endpoint: Endpoint):
+        super().__init__(endpoint)
+        self.listener: socket.socket | None = None
+        self.conn: socket.socket | None = None
+        self.peer: tuple | None = None
+        self.confirmed = False
+        self.counters.update({"connections": 0, "connections_refused": 0, "connections_replaced": 0})
+
+    @property
+    def is_open(self) -> bool:
+        return self.listener is not None
+
+    def open(self) -> None:
+        e = self.endpoint
+        family, address = resolve(e.host, e.port, socket.SOCK_STREAM, passive=True)
+        s = listening_socket(family, socket.SOCK_STREAM)
+        try:
+            s.bind(address)
+            s.listen(self.BACKLOG)
+        except OSError:
+            s.close()
+            raise
+        s.setblocking(False)
+        self.listener = s
+
+    def read(self, timeout: float) -> bytes:
+        if self.listener is None:
+            return b""
+        watched = [self.listener] + ([self.conn] if self.conn is not None else [])
+        try:
+            ready, _, _ = select.select(watched, [], [], timeout)
+        except (OSError, ValueError):
+            self.counters["rx_errors"] += 1
+            return b""
+        if self.listener in ready:
+            self._accept()
+        if self.conn is None or self.conn not in ready:
+            return b""
+        try:
+            data = self.conn.recv(MAX_READ)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError:
+            self.counters["rx_errors"] += 1
+            self._drop_connection()
+            return b""
+        if not data:
+            log.warning("MAVLink TCP peer %s closed the connection; listening again", _address(self.peer))
+            self._drop_connection()
+        return data
+
+    def _accept(self) -> None:
+        try:
+            conn, address = self.listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self.counters["rx_errors"] += 1
+            return
+        if self.conn is not None and self.confirmed:
+            self.counters["connections_refused"] += 1
+            if self.counters["connections_refused"] <= 5:
+                log.warning("MAVLink TCP connection from %s refused: the FC is connected from %s",
+                            _address(address), _address(self.peer))
+            conn.close()
+            return
+        if self.conn is not None:
+            self.counters["connections_replaced"] += 1
+            self._drop_connection()
+        conn.setblocking(False)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.conn, self.peer, self.confirmed = conn, address, False
+        self.counters["connections"] += 1
+        log.info("MAVLink TCP connection from %s", _address(address))
+
+    def accept_source(self) -> None:
+        self.confirmed = self.conn is not None
+
+    def _drop_connection(self) -> None:
+        if self.conn is not None:
+            with contextlib.suppress(OSError):
+                self.conn.close()
+        self.conn, self.peer, self.confirmed = None, None, False
+
+    def write(self, data: bytes) -> None:
+        if self.conn is None:
+            self.counters["tx_dropped"] += 1
+            return
+        try:
+            if self.conn.send(data) < len(data):
+                self.counters["tx_dropped"] += 1  # a partial MAVLink frame is re-synced by the parser
+        except (BlockingIOError, InterruptedError):
+            self.counters["tx_dropped"] += 1
+        except OSError:
+            self.counters["tx_dropped"] += 1
+            self._drop_connection()
+
+    def close(self) -> None:
+        self._drop_connection()
+        if self.listener is not None:
+            with contextlib.suppress(OSError):
+                self.listener.close()
+        self.listener = None
 
 
 class SerialTransport(Transport):
@@ -230,4 +326,6 @@ class SerialTransport(Transport):
 def make_transport(connection: str) -> Transport:
     """The transport for a connection string (not yet opened)."""
     e = parse_connection(connection)
-    return SerialTransport(e) if e.kind == "serial" else SocketTransport(e)
+    if e.kind == "serial":
+        return SerialTransport(e)
+    return TcpServerTransport(e) if e.kind == "tcpin" else SocketTransport(e)

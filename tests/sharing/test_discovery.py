@@ -8,7 +8,9 @@ import pytest
 import sharing_testmsg as tm
 from sharing_support import free_port, service, wait_until
 
+from coopd.net import host_port
 from coopd.sharing import discovery
+from tests.loopback import has_ipv6_loopback
 
 
 def test_parse_ranges_lists_and_ports():
@@ -131,3 +133,43 @@ def failures_of(svc) -> dict:
         for k, v in counts.items():
             out[k] = out.get(k, 0) + v
     return out
+
+
+def test_ipv6_peer_specs():
+    t = discovery.parse_targets(["fd00::7", "[fd00::8]:7401", "[::1]", "FD00:0::9"], [7400])
+    assert t == [("fd00::7", 7400), ("fd00::8", 7401), ("::1", 7400), ("fd00::9", 7400)]
+
+
+@pytest.mark.parametrize("bad", ["[fd00::7", "[zz::1]:7400", "[::1]7400", "fd00::zz", "[::1]:0", "fd00::1-5"])
+def test_bad_ipv6_specs_are_refused_by_the_service_and_the_config_check(bad):
+    from coopd.daemon.config import ConfigError, parse_config
+
+    with pytest.raises(ValueError) as refused:
+        discovery.parse_targets([bad], [7400])
+    with pytest.raises(ConfigError) as check:
+        parse_config(f"[sharing]\npeers = [{bad!r}]")
+    assert check.value.key == "sharing.peers" and str(refused.value) in str(check.value)
+
+
+def test_ipv4_peers_of_a_dual_stack_listener_are_known_by_their_ipv4_address():
+    assert discovery.peer_address("::ffff:10.42.0.7") == "10.42.0.7"
+    assert discovery.peer_address("fd00::7") == "fd00::7" and discovery.peer_address("10.0.0.1") == "10.0.0.1"
+    assert host_port("fd00::7", 7400) == "[fd00::7]:7400"
+
+
+@pytest.mark.skipif(not has_ipv6_loopback(), reason="no IPv6 loopback (::1) on this machine")
+def test_maps_are_shared_over_ipv6():
+    """Map server on ::1, the peer found by its bracketed address, the map delivered both ways."""
+    port_a, port_b = free_port("::1"), free_port("::1")
+    a = service(1, "::1", port_a, peers=[f"[::1]:{port_b}"]).start()
+    b = service(2, "::1", port_b, peers=[f"[::1]:{port_a}"]).start()
+    try:
+        assert a.stats()["listen"] == f"[::1]:{port_a}"
+        a.publish(tm.make(1, 1, b"x"), 1)
+        b.publish(tm.make(2, 1, b"y"), 1)
+        assert wait_until(lambda: b.received.version(1) == 1 and a.received.version(2) == 1, 5)
+        peers = a.stats()["peers"]
+        assert [(p["vehicle_id"], p["address"]) for p in peers] == [(2, "::1")]
+    finally:
+        a.stop()
+        b.stop()
