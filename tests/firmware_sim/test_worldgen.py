@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import math
 
 import mujoco
 import numpy as np
@@ -115,3 +116,23 @@ def test_parse_spec_and_the_simulator_command_line():
     assert parse_args(["--world", "maze"]).world == "maze"
     with pytest.raises(SystemExit):
         parse_args(["--world", "moon"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", ["gen:21:size=14x10,corridors=1,rooms=3,outdoor=0,clutter=1.5",
+                                  "gen:22:size=16x12,outdoor=1,clutter=2"])
+def test_generated_worlds_fly_their_builtin_routes_clean(spec):
+    from firmware_sim.frames import quat_to_mat
+    from firmware_sim.simulation import Simulation
+
+    sim = Simulation(build_world(spec), 2, seed=3, mavlink=False, camera=None, route="builtin")
+    for _ in range(400):
+        sim.step(1.0)
+        if all(sim.route_finished(i) for i in range(2)):
+            break
+    for i in range(2):
+        assert sim.route_finished(i), (spec, i)
+        traj = sim.trajectory(i)
+        assert traj[:, 3].max() > 0.9
+        tilt = [quat_to_mat(q)[2, 2] for q in traj[:, 4:8]]
+        assert min(tilt) > math.cos(math.radians(25))  # no knocks against door frames, walls or objects
