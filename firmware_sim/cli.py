@@ -16,14 +16,15 @@ import time
 from coopd.version import add_version_option
 from firmware_sim.camera import CameraConfig
 from firmware_sim.simulation import Simulation
-from firmware_sim.worlds import GENERATORS, build_world
+from firmware_sim.worlds import GENERATORS, build_world, world_name
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """Command-line options."""
     p = argparse.ArgumentParser(prog="coopd-sim", description=__doc__)
     add_version_option(p)
-    p.add_argument("--world", choices=sorted(GENERATORS), default="small_house")
+    p.add_argument("--world", type=world_name, default="small_house",
+                   help=f"one of {', '.join(sorted(GENERATORS))}, or gen:SEED[:key=value,...] (generated)")
     p.add_argument("--size", type=float, default=None, help="scale on the world's default extent (0.5..4)")
     p.add_argument("--vehicles", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)

@@ -10,6 +10,7 @@ import numpy as np
 
 from firmware_sim.shapes import Cylinder, Shape, box_from_corners
 from firmware_sim.voxelize import voxelize
+from firmware_sim.worldgen import generate, is_generated, parse_spec
 
 WALL_RGBA = (0.85, 0.85, 0.8, 1.0)
 FURNITURE_RGBA = (0.55, 0.4, 0.3, 1.0)
@@ -532,7 +533,30 @@ GENERATORS: dict[str, Callable[[int, object], World]] = {
 
 
 def build_world(name: str, seed: int = 0, size: float | None = None) -> World:
-    """Generate the named world deterministically from the seed; size scales its default extent."""
+    """Generate the named world deterministically from the seed; size scales its default extent.
+
+    Besides the six names, 'gen', 'gen:SEED' and 'gen:SEED:key=value,...' build a generated world
+    (firmware_sim/worldgen.py; a seed in the name wins over `seed`)."""
+    if is_generated(name):
+        gen_seed, params = parse_spec(name, int(seed))
+        return generate(gen_seed, params, _scale(size))
     if name not in GENERATORS:
-        raise ValueError(f"unknown world {name!r}; choose one of {sorted(GENERATORS)}")
+        raise ValueError(f"unknown world {name!r}; choose one of {sorted(GENERATORS)} "
+                         "or gen:SEED[:key=value,...]")
     return GENERATORS[name](int(seed), size)
+
+
+def world_name(text: str) -> str:
+    """argparse type for a world name: one of the six, or a well-formed generated world's name."""
+    import argparse
+
+    if is_generated(text):
+        try:
+            parse_spec(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+    elif text not in GENERATORS:
+        known = ", ".join(sorted(GENERATORS))
+        raise argparse.ArgumentTypeError(f"unknown world {text!r}; choose one of {known} "
+                                         "or gen:SEED[:key=value,...]")
+    return text

@@ -21,13 +21,14 @@ from coopd.io import export_png_top, load_cmap  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
 from coopd.sharing.wire import decode_map  # noqa: E402
 from firmware_sim.swarm import Swarm, SwarmSettings  # noqa: E402
-from firmware_sim.worlds import GENERATORS  # noqa: E402
+from firmware_sim.worlds import GENERATORS, world_name  # noqa: E402
 
 
 def parse_args():
     p = argparse.ArgumentParser(prog="scripts/demo", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--world", choices=sorted(GENERATORS), default="small_house")
+    p.add_argument("--world", type=world_name, default="small_house",
+                   help=f"one of {', '.join(sorted(GENERATORS))}, or gen:SEED[:key=value,...] (generated)")
     p.add_argument("--drones", type=int, default=3, help="number of drones (1..10)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--speed", type=float, default=2.0, help="simulated seconds per wall second")

@@ -8,9 +8,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..grid import OccupancyGrid, fuse_transformed
+from ..grid import OccupancyGrid, fuse_transformed, resample
 from .hints import Hint, resolve, try_hints
-from .pair import MergeResult, merge_prepared, prepare
+from .pair import MergeResult, comparable, merge_prepared, prepare
 from .params import MergeParams, coopd_params
 
 
@@ -53,7 +53,8 @@ class _World:
 
     def fuse(self, grid: OccupancyGrid, transform: np.ndarray, tm: dict) -> None:
         t0 = time.perf_counter()
-        fuse_transformed(self.grid, grid, transform, self.params.occupied_threshold)
+        same = resample(grid, self.grid.resolution)
+        fuse_transformed(self.grid, same, transform, self.params.occupied_threshold)
         tm["fuse"] = time.perf_counter() - t0
         self._prepared = None
 
@@ -73,7 +74,9 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
     compete with its hypotheses under the runner-up margin (a transform accepted on small early maps
     of a symmetric building is checked against the alternatives once the maps grew).
     hold(i, result): an accepted map it returns True for is reported (and its transform resolves
-    other maps' hints) but not fused into the global map: a provisional merge, not yet trusted."""
+    other maps' hints) but not fused into the global map: a provisional merge, not yet trusted.
+    A map of another resolution than the reference's is compared as pair.comparable makes it and
+    resampled to the reference's resolution when fused (transforms are in metres)."""
     params = params or coopd_params()
     hints = [list(h) for h in hints] if hints is not None else [[] for _ in others]
     if len(hints) != len(others):
@@ -87,7 +90,7 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
 
     def prepared(i: int, tm: dict):
         if prepared_others[i] is None:
-            prepared_others[i] = prepare(others[i], params, tm, lazy=True)
+            prepared_others[i] = prepare(comparable(others[i], reference.resolution), params, tm, lazy=True)
         return prepared_others[i]
 
     def finish(i: int, r: MergeResult, tm: dict, t0: float) -> None:

@@ -43,6 +43,7 @@ from coopd.merging.pair import merge_prepared, prepare  # noqa: E402
 from coopd.merging.params import VARIANTS, MergeParams  # noqa: E402
 from coopd.merging.ransac import filter_correspondences  # noqa: E402
 from firmware_sim import exploration  # noqa: E402
+from firmware_sim.mergeset import displacement  # noqa: E402
 
 QUICK_WORLDS = ("small_house", "bookstore")
 QUICK_ANGLES = (90.0,)
@@ -102,9 +103,7 @@ def errors(estimate: np.ndarray, truth: np.ndarray, b_points: np.ndarray) -> tup
     """(rotation error deg, translation error m, mean displacement m of b's points between the two)."""
     rot = rotation_angle_deg(estimate[:3, :3].T @ truth[:3, :3])
     trans = float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
-    disp = float(np.linalg.norm(apply(estimate, b_points) - apply(truth, b_points), axis=1).mean()) \
-        if len(b_points) else trans
-    return rot, trans, disp
+    return rot, trans, displacement(estimate, truth, b_points)[0]
 
 
 def within(points: np.ndarray, targets: np.ndarray, radius: float) -> np.ndarray:
