@@ -71,13 +71,16 @@ FC_BACKED = {
     "LAND_SPEED": ("MPC_LAND_SPEED", 100.0, mav.MAV_PARAM_TYPE_INT16),
     "RTL_ALT": ("RTL_RETURN_ALT", 100.0, mav.MAV_PARAM_TYPE_INT32),
     "PILOT_TKOFF_ALT": ("MIS_TAKEOFF_ALT", 100.0, mav.MAV_PARAM_TYPE_REAL32),
-    "DISARM_DELAY": ("COM_DISARM_PRFLT", 1.0, mav.MAV_PARAM_TYPE_INT8),
 }
+NEVER_S = 1e9
+"""DISARM_DELAY = 0 turns ArduCopter's disarm-on-the-ground off: the FC's delay becomes this."""
 INT_RANGES = {
     mav.MAV_PARAM_TYPE_INT8: (-128, 127),
     mav.MAV_PARAM_TYPE_INT16: (-32768, 32767),
     mav.MAV_PARAM_TYPE_INT32: (-(2**31), 2**31 - 1),
 }
+RANGES = {"DISARM_DELAY": (0, 127)}
+"""Documented ranges of own parameters (SRn_* are 0..MAX_STREAM_HZ); values outside are refused."""
 READ_ONLY = {"SYSID_THISMAV", "FRAME_CLASS", "FRAME_TYPE"}
 """Changing these needs a reboot on ArduPilot; the emulator keeps them fixed and echoes the value."""
 N_INSTANCES = 2
@@ -104,7 +107,9 @@ class ArduCopterParams:
             "SYSID_MYGCS": (255.0, mav.MAV_PARAM_TYPE_INT16),
             "FRAME_CLASS": (1.0, mav.MAV_PARAM_TYPE_INT8),
             "FRAME_TYPE": (1.0, mav.MAV_PARAM_TYPE_INT8),
+            "DISARM_DELAY": (10.0, mav.MAV_PARAM_TYPE_INT8),
         }
+        self._apply_disarm_delay()
         for n in range(N_INSTANCES):
             for name, _ in STREAMS.values():
                 rate = DEFAULT_STREAM_HZ[n].get(name, 0)
@@ -131,12 +136,21 @@ class ArduCopterParams:
             value = float(min(max(int(value), lo), hi))
         if name in FC_BACKED:
             key, scale, _ = FC_BACKED[name]
-            if value <= 0 and key != "COM_DISARM_PRFLT":
+            if value <= 0:
                 return False  # a zero speed or radius would stall the emulated vehicle
             self.v.fc.params[key] = value / scale
-        else:
-            self.own[name] = (value, ptype)
+            return True
+        lo, hi = RANGES.get(name, (0, MAX_STREAM_HZ) if name.startswith("SR") else (-math.inf, math.inf))
+        if not lo <= value <= hi:
+            return False
+        self.own[name] = (value, ptype)
+        self._apply_disarm_delay()
         return True
+
+    def _apply_disarm_delay(self) -> None:
+        """The FC disarms on the ground after DISARM_DELAY seconds without a takeoff (0: never)."""
+        delay = self.own["DISARM_DELAY"][0]
+        self.v.fc.params["COM_DISARM_PRFLT"] = delay if delay > 0 else NEVER_S
 
 
 class ArduPilotMissionServer(MissionServer):

@@ -163,3 +163,41 @@ def test_mission_keeps_home_as_item_zero(copter):
     assert gcs.command(mav.MAV_CMD_MISSION_START, 0, 0) == mav.MAV_RESULT_ACCEPTED
     assert wait_mode(gcs, ap.AUTO) is not None
     assert gcs.wait("MISSION_ITEM_REACHED", lambda m: m.seq == 1, timeout=10) is not None
+
+
+def test_hostile_values_on_the_arducopter_handlers(copter):
+    """Absurd stream requests, modes, parameters and commands: counted or refused, never a crash;
+    the vehicle still flies a GUIDED takeoff afterwards."""
+    import math
+
+    from .test_hostile import NASTY, Paced, assert_alive
+
+    sim, onboard, gcs = copter
+    m = Paced(gcs.mav)
+    for stream in (0, 1, 2, 6, 10, 12, 99, 255):
+        for rate, start in ((65535, 1), (0, 1), (10, 0), (7, 2), (7, 255)):
+            m.request_data_stream_send(1, 1, stream, rate, start)
+    for mode in (0, 2, 3, 4, 5, 6, 9, 12, 99, 2**32 - 1):
+        m.set_mode_send(1, 0, mode)
+        m.set_mode_send(1, 1, mode)
+    for name in (b"SR1_POSITION", b"SR0_EXTRA1", b"WPNAV_SPEED", b"LAND_SPEED", b"DISARM_DELAY", b"SR9_X"):
+        for v in NASTY:
+            m.param_set_send(1, 1, name, v, mav.MAV_PARAM_TYPE_INT16)
+    for cmd in (mav.MAV_CMD_DO_SET_MODE, mav.MAV_CMD_NAV_TAKEOFF, mav.MAV_CMD_MISSION_START,
+                mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_CMD_DO_REPOSITION,
+                mav.MAV_CMD_COMPONENT_ARM_DISARM):
+        for v in NASTY[:4]:
+            m.command_long_send(1, 1, cmd, 0, v, v, v, v, v, v, v)
+    m.command_long_send(1, 1, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 21196, 0, 0, 0, 0, 0)  # disarm again
+    time.sleep(0.5)
+    assert sim.vehicle(0).gcs_link.stats["rx_handler_errors"] == 0
+    params = sim.vehicle(0).autopilot_state["params"]
+    assert all(math.isfinite(params.get(n)[0]) for n in params.names)
+    assert 0 < sim.vehicle(0).fc.params["MPC_XY_CRUISE"] and 0 <= params.get("SR1_POSITION")[0] <= 50
+    assert sim.vehicle(0).fc.params["COM_DISARM_PRFLT"] > 0  # DISARM_DELAY: 0..127 s, 0 = never
+    assert_alive(sim, gcs)
+    gcs.mav.request_data_stream_send(1, 1, 0, 4, 1)
+    assert gcs.command(mav.MAV_CMD_DO_SET_MODE, 1, ap.GUIDED) == mav.MAV_RESULT_ACCEPTED
+    assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    assert gcs.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.5) == mav.MAV_RESULT_ACCEPTED
+    assert gcs.wait("GLOBAL_POSITION_INT", lambda x: x.relative_alt > 1400, timeout=10) is not None
