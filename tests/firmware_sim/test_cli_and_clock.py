@@ -37,6 +37,8 @@ def test_cli_runs_and_reports_endpoints(tmp_path, port_block):
         "builtin",
         "--mavlink-port",
         str(port_block),
+        "--gcs-port",
+        "0",
         "--camera-dir",
         str(tmp_path),
         "--no-camera",
@@ -47,6 +49,7 @@ def test_cli_runs_and_reports_endpoints(tmp_path, port_block):
     first, last = json.loads(lines[0]), json.loads(lines[-1])
     assert [v["system_id"] for v in first["vehicles"]] == [1, 2]
     assert first["vehicles"][1]["mavlink_target"] == f"udp://127.0.0.1:{port_block + 1}"
+    assert "mavlink_gcs_target" not in first["vehicles"][1]  # --gcs-port 0: no GCS instance
     assert last["sim_time_s"] >= 3.0
 
 
@@ -137,6 +140,8 @@ def test_cli_start_poses(port_block):
         "--no-camera",
         "--mavlink-port",
         str(port_block),
+        "--gcs-port",
+        "0",
     ]
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
