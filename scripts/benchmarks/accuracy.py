@@ -6,6 +6,7 @@ in the region explored, merged pairs, worst offset error of its merged maps, wal
 Goal (issue #7): precision and recall >= 0.85, offsets within 0.3 m and 3 deg.
 Usage: scripts/benchmarks/accuracy.py [--worlds a,b] [--drones 3] [--seed 1] [--speed 2]
                                      [--autopilot px4|ardupilot] [--timeout 270] [--tabulate]
+                                     [--network auto|netns|loopback] [--port-base N]
 (--tabulate: no runs, the table again from the reports already in out/bench/accuracy/WORLD/)
 --autopilot ardupilot flies ArduCopter-personality drones (coopd builds its poses from
 LOCAL_POSITION_NED + ATTITUDE_QUATERNION) and writes out/bench/accuracy-ardupilot.{json,md} and
@@ -85,7 +86,9 @@ def run_world(world: str, a, out: Path) -> list[dict]:
     report_path.unlink(missing_ok=True)
     cmd = [sys.executable, str(ROOT / "scripts" / "demo.py"), "--world", world, "--drones", str(a.drones),
            "--seed", str(a.seed), "--speed", str(a.speed), "--autopilot", a.autopilot, "--out", str(run_out),
-           "--timeout", str(a.timeout)]
+           "--timeout", str(a.timeout), "--network", a.network]
+    if a.port_base is not None:
+        cmd += ["--port-base", str(a.port_base)]
     with open(run_out / "demo.log", "wb") as log:
         rc = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
     if not report_path.exists():
@@ -111,6 +114,10 @@ def main() -> int:
     p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4")
     p.add_argument("--timeout", type=float, default=270.0,
                    help="each demo's wall-time limit (more on a loaded machine: merging takes CPU)")
+    p.add_argument("--network", choices=("auto", "netns", "loopback"), default="auto",
+                   help="the demo's network; loopback with its own --port-base runs beside another swarm "
+                        "(two netns swarms share the FC cables' root-side addresses)")
+    p.add_argument("--port-base", type=int, default=None, help="the demo's --port-base")
     p.add_argument("--tabulate", action="store_true", help="no runs: tabulate the reports already there")
     a = p.parse_args()
     worlds = [w for w in a.worlds.split(",") if w]
