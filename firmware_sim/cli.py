@@ -1,4 +1,6 @@
-"""coopd-sim: run N emulated PX4-style quadrotors with depth cameras in a generated world."""
+"""coopd-sim: run N emulated quadrotors (PX4 or ArduCopter personality) with depth cameras in a generated
+world. Each vehicle has an onboard/API MAVLink instance (sends to 127.0.0.1:14540+i) and a GCS instance
+(sends to 127.0.0.1:14550), as PX4 SITL has."""
 
 from __future__ import annotations
 
@@ -42,7 +44,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default="start",
         help="odometry frame: each vehicle's start pose (default) or the shared world frame",
     )
-    p.add_argument("--mavlink-port", type=int, default=14540, help="vehicle i sends to 127.0.0.1:PORT+i")
+    p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4",
+                   help="MAVLink personality: PX4, or ArduCopter (modes, streams, parameter names)")
+    p.add_argument("--mavlink-port", type=int, default=14540,
+                   help="onboard/API instance: vehicle i sends to 127.0.0.1:PORT+i")
+    p.add_argument("--gcs-port", type=int, default=14550,
+                   help="GCS instance: every vehicle sends to 127.0.0.1:PORT (0: no GCS instance)")
     p.add_argument(
         "--camera-dir",
         default=None,
@@ -121,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
             frame=a.frame,
             start_poses=poses,
             mavlink_base_port=a.mavlink_port,
+            gcs_port=a.gcs_port or None,
+            autopilot=a.autopilot,
             camera_dir=a.camera_dir,
             camera_tcp_base_port=a.camera_tcp_port,
             route="builtin" if a.route == "builtin" else None,
@@ -154,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         "real_time_factor": round(sim.time / wall, 3) if wall > 0 else None,
         "pacing_resets": sim.lag_resets,
         "mavlink": [dict(v.link.stats) if v.link else {} for v in sim.vehicles],
+        "mavlink_gcs": [dict(v.gcs_link.stats) if v.gcs_link else {} for v in sim.vehicles],
         "camera_frames_dropped": [v.publisher.frames_dropped if v.publisher else 0 for v in sim.vehicles],
     }
     print(json.dumps(stats), flush=True)

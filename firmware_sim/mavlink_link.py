@@ -1,4 +1,8 @@
-"""One vehicle's MAVLink endpoint (PX4 SITL style): telemetry streams, commands, params, missions."""
+"""One MAVLink instance of a vehicle (PX4 SITL style): telemetry streams, commands, params, missions.
+
+A vehicle has one instance per client class, as PX4 has: an onboard/API instance (sends to port
+14540 + i, where coopd or MAVSDK listen) and optionally a GCS instance (sends to 14550, where
+QGroundControl or MAVProxy listen), each with its own socket, parser and stream rates."""
 
 from __future__ import annotations
 
@@ -21,7 +25,7 @@ MAX_DATAGRAMS_PER_POLL = 64
 MAX_DATAGRAM = 2048
 MAX_STATUSTEXT_PER_TICK = 4
 
-# Default stream rates in Hz of simulated time (PX4 "onboard"-like, trimmed).
+# Default stream rates in Hz of simulated time of the onboard/API instance (PX4 "onboard"-like, trimmed).
 DEFAULT_RATES_HZ = {
     mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
     mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
@@ -34,6 +38,20 @@ DEFAULT_RATES_HZ = {
     mav.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
     mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
+    mav.MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
+    mav.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
+}
+# The GCS instance (PX4 "normal" mode, trimmed): what a ground station displays, no ODOMETRY.
+GCS_RATES_HZ = {
+    mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+    mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
+    mav.MAVLINK_MSG_ID_ATTITUDE: 10.0,
+    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 2.0,
+    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
+    mav.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
+    mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
     mav.MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
     mav.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
 }
@@ -90,12 +108,29 @@ def ned_to_enu(v) -> np.ndarray:
     return np.array([v[1], v[0], -v[2]], dtype=float)
 
 
+def take_vehicle_events(fc) -> tuple[list[int], list[tuple[int, str]]]:
+    """The flight controller's new events (mission items reached, STATUSTEXTs, bounded per tick),
+    taken once per step so that every MAVLink instance of the vehicle sends the same ones."""
+    reached, fc.reached_events = fc.reached_events, []
+    texts = fc.messages[:MAX_STATUSTEXT_PER_TICK]
+    del fc.messages[:MAX_STATUSTEXT_PER_TICK]
+    return reached, texts
+
+
 class MavlinkLink:
-    """Bound to <bind_host>:<ephemeral>, sends to the client's UDP port, answers whoever talks to it."""
+    """Bound to <bind_host>:<bind_port or ephemeral>, sends to the client's UDP port, answers whoever
+    talks to it. `rates` (Hz by message id) are this instance's default streams; `instance` numbers
+    the vehicle's instances (0 = onboard/API, 1 = GCS)."""
+
+    default_rates: dict[int, float] = DEFAULT_RATES_HZ
+    commands: dict  # MAV_CMD -> handler(self, params, int_xy) returning a MAV_RESULT; set below
 
     def __init__(self, sim, vehicle, target: tuple[str, int], bind_port: int = 0,
-                 bind_host: str = "127.0.0.1"):
+                 bind_host: str = "127.0.0.1", rates: dict[int, float] | None = None, instance: int = 0):
         self.sim, self.v, self.target, self.bind_host = sim, vehicle, target, bind_host
+        self.instance = instance
+        if rates is not None:
+            self.default_rates = dict(rates)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((bind_host, bind_port))
         self.sock.setblocking(False)
@@ -104,7 +139,7 @@ class MavlinkLink:
         self.tx = mav.MAVLink(_Writer(self), srcSystem=vehicle.system_id, srcComponent=1)
         self.rx = mav.MAVLink(None, srcSystem=vehicle.system_id, srcComponent=1)
         self.rx.robust_parsing = True
-        self.intervals = {m: 1.0 / hz for m, hz in DEFAULT_RATES_HZ.items()}
+        self.intervals = {m: 1.0 / hz if hz > 0 else 0.0 for m, hz in self.default_rates.items()}
         self.next_due = dict.fromkeys(self.intervals, 0.0)
         self.mission = MissionServer(self)
         self._earliest_due = 0.0
@@ -181,14 +216,14 @@ class MavlinkLink:
         self.rx.expected_length = mav.HEADER_LEN_V1 + 2
         self.rx.have_prefix_error = False
 
-    def on_sim_step(self, t: float) -> None:
-        """Send due telemetry and pending events; called after every physics step."""
+    def on_sim_step(self, t: float, reached=(), texts=()) -> None:
+        """Send the step's vehicle events (take_vehicle_events) and due telemetry; called after every
+        physics step."""
         fc = self.v.fc
-        while fc.reached_events:
-            self.send(self.tx.mission_item_reached_encode(fc.reached_events.pop(0)))
-        for sev, text in fc.messages[:MAX_STATUSTEXT_PER_TICK]:
+        for seq in reached:
+            self.send(self.tx.mission_item_reached_encode(seq))
+        for sev, text in texts:
             self.send(self.tx.statustext_encode(sev, text.encode()[:50]))
-        del fc.messages[:MAX_STATUSTEXT_PER_TICK]
         if fc.mission_index != self._last_mission_seq:
             self._last_mission_seq = fc.mission_index
             self._emit(mav.MAVLINK_MSG_ID_MISSION_CURRENT, t)
@@ -482,6 +517,12 @@ class MavlinkLink:
 
     def _on_set_position_target_local_ned(self, m) -> None:
         """Offboard setpoint in local NED (or body / offset frames), honouring type_mask."""
+        sp = self._position_target(m)
+        if sp is not None:
+            self.v.fc.set_offboard_setpoint(sp)
+
+    def _position_target(self, m) -> Setpoint | None:
+        """SET_POSITION_TARGET_LOCAL_NED as a local-ENU Setpoint; None (counted) if unusable."""
         mask = m.type_mask
         pos = np.array(
             [math.nan if mask & b else v for b, v in zip(IGNORE_POS, (m.x, m.y, m.z), strict=True)]
@@ -498,7 +539,7 @@ class MavlinkLink:
             or (yaw_rate is not None and abs(yaw_rate) > 100)
         ):
             self.stats["setpoint_invalid"] += 1
-            return
+            return None
         s = self.sim.estimated_state(self.v)
         here = ENU_TO_NED @ s.pos
         yaw_now = euler_zyx(enu_flu_to_ned_frd(s.rot))[2]
@@ -512,11 +553,11 @@ class MavlinkLink:
             pos = here + np.nan_to_num(pos) if np.isfinite(pos).any() else pos
         elif frame != mav.MAV_FRAME_LOCAL_NED:
             self.stats["setpoint_bad_frame"] += 1
-            return
+            return None
         has_pos, has_vel = bool(np.isfinite(pos).any()), bool(np.isfinite(vel).any())
         if not (has_pos or has_vel) and yaw is None and yaw_rate is None:
             self.stats["setpoint_empty"] += 1
-            return
+            return None
         sp = Setpoint(
             pos=ned_to_enu(pos) if has_pos else None,
             vel=ned_to_enu(vel) if has_vel else None,
@@ -525,7 +566,7 @@ class MavlinkLink:
         )
         if sp.pos is None and sp.vel is None:
             sp.pos = s.pos.copy()
-        self.v.fc.set_offboard_setpoint(sp)
+        return sp
 
     # ------------------------------------------------------------------ commands
 
@@ -541,7 +582,7 @@ class MavlinkLink:
 
     def _command(self, m, command: int, p: list, is_int: bool, int_xy=None) -> None:
         """Execute a command and always answer with COMMAND_ACK carrying the right MAV_RESULT."""
-        handler = COMMANDS.get(command)
+        handler = self.commands.get(command)
         if handler is None:
             result = mav.MAV_RESULT_UNSUPPORTED
         else:
@@ -626,7 +667,7 @@ class MavlinkLink:
         if not math.isfinite(interval_us):
             return mav.MAV_RESULT_DENIED
         if interval_us == 0:
-            rate = DEFAULT_RATES_HZ.get(msg_id, 0.0)
+            rate = self.default_rates.get(msg_id, 0.0)
             self.intervals[msg_id] = 1.0 / rate if rate else 0.0
         elif interval_us < 0:
             self.intervals[msg_id] = 0.0
@@ -713,3 +754,4 @@ COMMANDS = {
     mav.MAV_CMD_DO_SET_HOME: MavlinkLink._cmd_set_home,
     mav.MAV_CMD_CONDITION_YAW: MavlinkLink._cmd_condition_yaw,
 }
+MavlinkLink.commands = COMMANDS

@@ -185,14 +185,18 @@ class MissionServer:
             return
         self.link.send(
             self.link.tx.mission_count_encode(
-                msg.get_srcSystem(), msg.get_srcComponent(), len(self.plans[mtype]), mtype
+                msg.get_srcSystem(), msg.get_srcComponent(), len(self.download_plan(mtype)), mtype
             )
         )
+
+    def download_plan(self, mtype: int) -> list[MissionItem]:
+        """The items a download of this mission type returns (an autopilot may add its own)."""
+        return self.plans[mtype]
 
     def _on_mission_request_int(self, msg) -> None:
         """Send one requested item of a download."""
         mtype = getattr(msg, "mission_type", 0)
-        plan = self.plans.get(mtype)
+        plan = self.download_plan(mtype) if mtype in self.plans else None
         if plan is None or not 0 <= msg.seq < len(plan):
             self._ack(msg, mav.MAV_MISSION_INVALID_SEQUENCE, mtype)
             return

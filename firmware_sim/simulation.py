@@ -26,6 +26,7 @@ from firmware_sim.flight import (
     NavTarget,
 )
 from firmware_sim.frames import mat_to_quat, quat_to_mat, rot_z, yaw_of
+from firmware_sim.mavlink_link import take_vehicle_events
 from firmware_sim.odometry import NOISE_PRESETS, NoiseConfig, OdometryModel
 from firmware_sim.worlds import World, compose_mjcf
 
@@ -68,6 +69,11 @@ class Vehicle:
     camera: DepthCamera | None
     publisher: CameraPublisher | None = None
     link: object | None = None
+    """The onboard/API MAVLink instance (sends to mavlink_base_port + index)."""
+    gcs_link: object | None = None
+    """The GCS MAVLink instance (sends to gcs_port), if the simulation has one."""
+    autopilot_state: dict = field(default_factory=dict)
+    """Per-vehicle state an autopilot personality shares between its instances (mode, parameters)."""
     camera_seq: int = 0
     next_frame_t: float = 0.0
     trajectory: list[tuple[float, float, float, float, float, float, float, float]] = field(
@@ -95,6 +101,11 @@ class Vehicle:
         return self.sim.trajectory(self.index)
 
     @property
+    def links(self) -> list:
+        """Every MAVLink instance of the vehicle (onboard/API first)."""
+        return [k for k in (self.link, self.gcs_link) if k is not None]
+
+    @property
     def mavlink_endpoint(self) -> tuple[str, int] | None:
         """(host, port) the vehicle's MAVLink socket is bound to, if MAVLink is on."""
         return None if self.link is None else (self.link.bind_host, self.link.bound_port)
@@ -120,6 +131,8 @@ class Simulation:
         camera_dir: str | None = None,
         camera_tcp_base_port: int | None = None,
         route: str | None = None,
+        gcs_port: int | None = None,
+        autopilot: str = "px4",
     ):
         if not (1 <= n_vehicles <= 64):
             raise ValueError("n_vehicles must be within 1..64")
@@ -127,6 +140,11 @@ class Simulation:
             raise ValueError("speed must be within (0, 1000]")
         if frame not in ("start", "world"):
             raise ValueError("frame is 'start' (each vehicle's start pose) or 'world'")
+        if autopilot not in AUTOPILOTS:
+            raise ValueError(f"autopilot is one of {sorted(AUTOPILOTS)}")
+        if gcs_port is not None and not 1 <= gcs_port <= 65535:
+            raise ValueError("gcs_port must be within 1..65535")
+        self.autopilot = autopilot
         self.world, self.seed, self.speed, self.frame = world, int(seed), float(speed), frame
         noise_cfg = NOISE_PRESETS[noise] if isinstance(noise, str) else noise
         poses = list(start_poses) if start_poses is not None else world.start_poses(n_vehicles)
@@ -172,7 +190,7 @@ class Simulation:
                 int(self.model.jnt_qposadr[jnt]),
                 int(self.model.jnt_dofadr[jnt]),
                 (x, y, float(self.data.xpos[body][2]), yaw),
-                FlightController(params=default_params(i)),
+                FlightController(params=default_params(i)),  # PX4 names: the FC's own tuning keys
                 odo,
                 cam,
             )
@@ -183,7 +201,7 @@ class Simulation:
         if not isinstance(mavlink_bind_host, str) and len(mavlink_bind_host) != n_vehicles:
             raise ValueError("mavlink_bind_host is one address, or one per vehicle")
         self._setup_io(mavlink, mavlink_base_port, mavlink_hosts, mavlink_bind_host, camera_dir,
-                       camera_tcp_base_port)
+                       camera_tcp_base_port, gcs_port)
         self._record_all()
         if route == "builtin":
             self.fly_builtin_routes()
@@ -193,16 +211,22 @@ class Simulation:
     # ------------------------------------------------------------------ wiring
 
     def _setup_io(self, mavlink: bool, base_port: int, hosts: list[str] | None, bind_host: str | list[str],
-                  camera_dir: str | None, tcp_base: int | None) -> None:
-        """Open each vehicle's MAVLink endpoint (bound on bind_host, or bind_host[i] when each vehicle
-        has its own wire, sending to hosts[i]:base_port+i, default loopback) and camera publisher."""
+                  camera_dir: str | None, tcp_base: int | None, gcs_port: int | None) -> None:
+        """Open each vehicle's MAVLink instances (bound on bind_host, or bind_host[i] when each vehicle
+        has its own wire): onboard/API sending to hosts[i]:base_port+i (default loopback) and, with
+        gcs_port, a GCS instance sending to hosts[i]:gcs_port, as PX4 SITL does; and the camera publisher."""
         if mavlink:
-            from firmware_sim.mavlink_link import MavlinkLink
+            from firmware_sim.mavlink_link import GCS_RATES_HZ
 
+            link_class = AUTOPILOTS[self.autopilot]()
             for v in self.vehicles:
                 host = "127.0.0.1" if hosts is None else hosts[v.index]
                 bind = bind_host if isinstance(bind_host, str) else bind_host[v.index]
-                v.link = MavlinkLink(self, v, (host, base_port + v.index), bind_host=bind)
+                v.link = link_class(self, v, (host, base_port + v.index), bind_host=bind, instance=0)
+                if gcs_port is not None:
+                    gcs_rates = GCS_RATES_HZ if self.autopilot == "px4" else None
+                    v.gcs_link = link_class(self, v, (host, gcs_port), bind_host=bind, rates=gcs_rates,
+                                            instance=1)
         if camera_dir is not None:
             os.makedirs(camera_dir, exist_ok=True)
         for v in self.vehicles:
@@ -218,8 +242,12 @@ class Simulation:
         for v in self.vehicles:
             e = {"vehicle": v.index, "system_id": v.system_id, "start_pose": list(v.true_start_pose)}
             if v.link is not None:
+                e["autopilot"] = self.autopilot
                 e["mavlink_bound"] = f"udp://{v.link.bind_host}:{v.link.bound_port}"
                 e["mavlink_target"] = f"udp://{v.link.target[0]}:{v.link.target[1]}"
+            if v.gcs_link is not None:
+                e["mavlink_gcs_bound"] = f"udp://{v.gcs_link.bind_host}:{v.gcs_link.bound_port}"
+                e["mavlink_gcs_target"] = f"udp://{v.gcs_link.target[0]}:{v.gcs_link.target[1]}"
             if v.publisher is not None:
                 e["camera_unix"] = v.publisher.unix_path
                 e["camera_tcp"] = (
@@ -308,7 +336,9 @@ class Simulation:
                 v.next_frame_t += 1.0 / v.camera.cfg.rate_hz
                 self._capture(v)
             if v.link is not None:
-                v.link.on_sim_step(self.time)
+                reached, texts = take_vehicle_events(v.fc)
+                for link in v.links:
+                    link.on_sim_step(self.time, reached, texts)
 
     def stall_camera(self, i: int, seconds: float) -> None:
         """Fault injection: vehicle i's camera publishes nothing for the next `seconds` wall seconds
@@ -377,8 +407,7 @@ class Simulation:
         """Every socket the loop waits on."""
         fds = []
         for v in self.vehicles:
-            if v.link is not None:
-                fds.append(v.link.fileno())
+            fds.extend(link.fileno() for link in v.links)
             if v.publisher is not None:
                 fds.extend(v.publisher.fileno_list())
         return fds
@@ -396,8 +425,8 @@ class Simulation:
                 time.sleep(timeout)
         with self.lock:
             for v in self.vehicles:
-                if v.link is not None:
-                    v.link.poll(self.time)
+                for link in v.links:
+                    link.poll(self.time)
                 if v.publisher is not None:
                     v.publisher.poll()
 
@@ -455,8 +484,8 @@ class Simulation:
                 th.join(timeout=5)
         self._thread = self._render_thread = None
         for v in self.vehicles:
-            if v.link is not None:
-                v.link.close()
+            for link in v.links:
+                link.close()
             if v.publisher is not None:
                 v.publisher.close()
 
@@ -488,6 +517,22 @@ class Simulation:
         """True once vehicle i has completed its mission and is disarmed on the ground."""
         fc = self.vehicles[i].fc
         return fc.mission_index >= len(fc.mission) and not fc.armed
+
+
+def _px4_link():
+    from firmware_sim.mavlink_link import MavlinkLink
+
+    return MavlinkLink
+
+
+def _ardupilot_link():
+    from firmware_sim.ardupilot import ArduCopterLink
+
+    return ArduCopterLink
+
+
+AUTOPILOTS = {"px4": _px4_link, "ardupilot": _ardupilot_link}
+"""Autopilot personalities: name -> the MAVLink instance class (imported when used)."""
 
 
 def default_params(index: int) -> dict:

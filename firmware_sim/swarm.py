@@ -73,6 +73,8 @@ class SwarmSettings:
     config: dict = field(default_factory=dict)
     """Extra coopd.toml settings: {section: {key: value}}, e.g. {"merging": {"distributed": False}}."""
     noise: str = "default"
+    autopilot: str = "px4"
+    """The flight controllers' MAVLink personality: 'px4' or 'ardupilot' (ArduCopter)."""
 
 
 def toml_value(v) -> str:
@@ -210,7 +212,8 @@ class Swarm:
         self.sim = Simulation(self.world, s.drones, seed=s.seed, speed=s.speed, noise=s.noise,
                               mavlink_base_port=s.mavlink_base,
                               mavlink_hosts=[self.mavlink_address(i) for i in range(s.drones)],
-                              mavlink_bind_host=sim_host, camera_dir=str(self.workdir))
+                              mavlink_bind_host=sim_host, camera_dir=str(self.workdir),
+                              autopilot=s.autopilot)
         self.sim.start()
         self.start_daemon(0)
         if wait:

@@ -29,6 +29,8 @@ def parse_args():
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--world", type=world_name, default="small_house",
                    help=f"one of {', '.join(sorted(GENERATORS))}, or gen:SEED[:key=value,...] (generated)")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4",
+                   help="the flight controllers' MAVLink personality (ardupilot: ArduCopter)")
     p.add_argument("--drones", type=int, default=3, help="number of drones (1..10)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--speed", type=float, default=2.0, help="simulated seconds per wall second")
@@ -65,7 +67,7 @@ def main() -> int:
     args = parse_args()
     swarm = Swarm(SwarmSettings(world=args.world, drones=args.drones, seed=args.seed, speed=args.speed,
                                 network=args.network, mavlink_base=args.port_base,
-                                sharing_port=args.port_base + 2660))
+                                sharing_port=args.port_base + 2660, autopilot=args.autopilot))
     interrupted = False
 
     def on_signal(*_):
@@ -75,7 +77,7 @@ def main() -> int:
     t0 = time.monotonic()
     try:
         n = args.drones
-        print(f"demo: world {args.world} (seed {args.seed}), {n} drones, "
+        print(f"demo: world {args.world} (seed {args.seed}), {n} drones ({args.autopilot}), "
               f"firmware_sim at {args.speed:g}x real time")
         swarm.start()
         print(f"demo: {n} coopd daemons mapping, network: {swarm.network_mode} "
@@ -164,7 +166,8 @@ def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
             print(f"   could not dump the global map: {e}")
             ok = False
     (out / "demo_report.json").write_text(json.dumps(
-        {"world": args.world, "drones": n, "network": swarm.network_mode, "elapsed_s": elapsed,
+        {"world": args.world, "autopilot": args.autopilot, "drones": n, "network": swarm.network_mode,
+         "elapsed_s": elapsed,
          "sim_s": swarm.sim.time, "lag_resets": swarm.sim.lag_resets, "accuracy": drones,
          "statuses": statuses}, indent=1, default=str))
     return 0 if ok else 1

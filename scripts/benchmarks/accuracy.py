@@ -4,8 +4,13 @@ markdown table (out/bench/accuracy.md): per drone, occupied-cell precision/recal
 in the region explored, merged pairs, worst offset error of its merged maps, wall time.
 
 Goal (issue #7): precision and recall >= 0.85, offsets within 0.3 m and 3 deg.
-Usage: scripts/benchmarks/accuracy.py [--worlds a,b] [--drones 3] [--seed 1] [--speed 2] [--tabulate]
+Usage: scripts/benchmarks/accuracy.py [--worlds a,b] [--drones 3] [--seed 1] [--speed 2]
+                                     [--autopilot px4|ardupilot] [--timeout 270] [--tabulate]
+                                     [--network auto|netns|loopback] [--port-base N]
 (--tabulate: no runs, the table again from the reports already in out/bench/accuracy/WORLD/)
+--autopilot ardupilot flies ArduCopter-personality drones (coopd builds its poses from
+LOCAL_POSITION_NED + ATTITUDE_QUATERNION) and writes out/bench/accuracy-ardupilot.{json,md} and
+out/bench/accuracy-ardupilot/WORLD/, beside the PX4 run's files.
 """
 
 import argparse
@@ -73,14 +78,17 @@ def markdown(rows: list[dict]) -> str:
 
 def run_world(world: str, a, out: Path) -> list[dict]:
     """One demo run (or, with --tabulate, the report of the last); its rows (none without a report)."""
-    run_out = out / "accuracy" / world
+    run_out = out / run_name(a) / world
     run_out.mkdir(parents=True, exist_ok=True)
     report_path = run_out / "demo_report.json"
     if a.tabulate:
         return drone_rows(json.loads(report_path.read_text())) if report_path.exists() else []
     report_path.unlink(missing_ok=True)
     cmd = [sys.executable, str(ROOT / "scripts" / "demo.py"), "--world", world, "--drones", str(a.drones),
-           "--seed", str(a.seed), "--speed", str(a.speed), "--out", str(run_out)]
+           "--seed", str(a.seed), "--speed", str(a.speed), "--autopilot", a.autopilot, "--out", str(run_out),
+           "--timeout", str(a.timeout), "--network", a.network]
+    if a.port_base is not None:
+        cmd += ["--port-base", str(a.port_base)]
     with open(run_out / "demo.log", "wb") as log:
         rc = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
     if not report_path.exists():
@@ -91,6 +99,11 @@ def run_world(world: str, a, out: Path) -> list[dict]:
     return rows
 
 
+def run_name(a) -> str:
+    """Where a run's files go: 'accuracy' for PX4 (as before), 'accuracy-ardupilot' for ArduPilot."""
+    return "accuracy" if a.autopilot == "px4" else f"accuracy-{a.autopilot}"
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--worlds", default=",".join(GENERATORS))
@@ -98,6 +111,13 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--speed", type=float, default=2.0)
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4")
+    p.add_argument("--timeout", type=float, default=270.0,
+                   help="each demo's wall-time limit (more on a loaded machine: merging takes CPU)")
+    p.add_argument("--network", choices=("auto", "netns", "loopback"), default="auto",
+                   help="the demo's network; loopback with its own --port-base runs beside another swarm "
+                        "(two netns swarms share the FC cables' root-side addresses)")
+    p.add_argument("--port-base", type=int, default=None, help="the demo's --port-base")
     p.add_argument("--tabulate", action="store_true", help="no runs: tabulate the reports already there")
     a = p.parse_args()
     worlds = [w for w in a.worlds.split(",") if w]
@@ -109,11 +129,13 @@ def main() -> int:
     for world in worlds:
         print(f"accuracy: {world} ...", flush=True)
         rows += run_world(world, a, a.out)
-        (a.out / "accuracy.json").write_text(json.dumps({"goal": GOAL, "drones": a.drones, "seed": a.seed,
-                                                          "speed": a.speed, "rows": rows}, indent=1))
-        (a.out / "accuracy.md").write_text(markdown(rows))
+        name = run_name(a)
+        summary = {"goal": GOAL, "autopilot": a.autopilot, "drones": a.drones, "seed": a.seed,
+                   "speed": a.speed, "rows": rows}
+        (a.out / f"{name}.json").write_text(json.dumps(summary, indent=1))
+        (a.out / f"{name}.md").write_text(markdown(rows))
     print(markdown(rows))
-    print(f"wrote {a.out / 'accuracy.json'} and {a.out / 'accuracy.md'}")
+    print(f"wrote {a.out / (run_name(a) + '.json')} and {a.out / (run_name(a) + '.md')}")
     return 0 if rows and all(meets_goal(r) for r in rows) else 1
 
 

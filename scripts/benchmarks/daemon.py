@@ -38,7 +38,8 @@ def start_sim(workdir: Path, port: int, speed: float, world: str):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen(
         [sys.executable, "-m", "firmware_sim.cli", "--world", world, "--speed", str(speed), "--route",
-         "builtin", "--mavlink-port", str(port), "--camera-dir", str(workdir / "cam"), "--duration", "3600"],
+         "builtin", "--mavlink-port", str(port), "--camera-dir", str(workdir / "cam"), "--duration", "3600",
+         "--gcs-port", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, cwd=ROOT)
     info = json.loads(proc.stdout.readline())
     return proc, info

@@ -57,7 +57,7 @@ class Sim:
         self.proc = subprocess.Popen(
             [PYTHON, "-m", "firmware_sim.cli", "--world", world, "--seed", str(seed), "--speed", str(speed),
              "--route", "builtin", "--vehicles", str(vehicles), "--mavlink-port", str(mavlink_port),
-             "--camera-dir", str(self.camera_dir), "--duration", "600"],
+             "--camera-dir", str(self.camera_dir), "--duration", "600", "--gcs-port", "0"],
             stdout=subprocess.PIPE, stderr=self.log, env=env(), cwd=ROOT,
         )
         line = self.proc.stdout.readline()

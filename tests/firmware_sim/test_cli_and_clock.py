@@ -37,6 +37,8 @@ def test_cli_runs_and_reports_endpoints(tmp_path, port_block):
         "builtin",
         "--mavlink-port",
         str(port_block),
+        "--gcs-port",
+        "0",
         "--camera-dir",
         str(tmp_path),
         "--no-camera",
@@ -47,7 +49,31 @@ def test_cli_runs_and_reports_endpoints(tmp_path, port_block):
     first, last = json.loads(lines[0]), json.loads(lines[-1])
     assert [v["system_id"] for v in first["vehicles"]] == [1, 2]
     assert first["vehicles"][1]["mavlink_target"] == f"udp://127.0.0.1:{port_block + 1}"
+    assert "mavlink_gcs_target" not in first["vehicles"][1]  # --gcs-port 0: no GCS instance
     assert last["sim_time_s"] >= 3.0
+
+
+def test_cli_ardupilot_personality_on_both_instances(port_block):
+    """coopd-sim --autopilot ardupilot: an ArduCopter on the onboard and the GCS port (AUTO: the route)."""
+    gcs_port = port_block + 4
+    onboard, gcs = Client(port_block), Client(gcs_port)
+    cmd = [sys.executable, "-m", "firmware_sim.cli", "--world", "small_house", "--autopilot", "ardupilot",
+           "--route", "builtin", "--speed", "2", "--duration", "4", "--no-camera",
+           "--mavlink-port", str(port_block), "--gcs-port", str(gcs_port)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = json.loads(proc.stdout.readline())
+        assert first["vehicles"][0]["autopilot"] == "ardupilot"
+        assert first["vehicles"][0]["mavlink_gcs_target"] == f"udp://127.0.0.1:{gcs_port}"
+        for c in (onboard, gcs):
+            hb = c.wait("HEARTBEAT", timeout=15)
+            assert hb is not None and hb.autopilot == 3 and hb.custom_mode == 3  # ARDUPILOTMEGA, AUTO
+        assert proc.wait(timeout=60) == 0
+    finally:
+        proc.kill()
+        proc.wait()
+        onboard.conn.close()
+        gcs.conn.close()
 
 
 def test_cli_rejects_bad_options():
@@ -114,6 +140,8 @@ def test_cli_start_poses(port_block):
         "--no-camera",
         "--mavlink-port",
         str(port_block),
+        "--gcs-port",
+        "0",
     ]
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr

@@ -339,3 +339,30 @@ def test_interval_query_yaw_speed_and_mission_housekeeping(sim_and_client):
     assert c0.wait("ATTITUDE", lambda m: abs(m.yaw - math.pi / 2) < 0.05, timeout=10) is not None
     assert c0.command(mav.MAV_CMD_DO_CHANGE_SPEED, 1, 0.5) == 0
     assert sim.vehicle(0).fc.cruise_speed == 0.5
+
+
+def test_onboard_and_gcs_instances_share_the_vehicle_not_the_streams(house, port_block):
+    """PX4 SITL's layout: each instance its own socket and stream rates; the vehicle's events
+    (STATUSTEXT, arming) reach both."""
+    sim = Simulation(house, 1, seed=3, speed=4.0, camera=None, mavlink_base_port=port_block,
+                     gcs_port=port_block + 4)
+    onboard, gcs = Client(port_block), Client(port_block + 4)
+    sim.start()
+    try:
+        for c in (onboard, gcs):
+            assert c.wait("HEARTBEAT") is not None
+        assert "ODOMETRY" in {m.get_type() for m in onboard.collect(1.0)}
+        assert "ODOMETRY" not in {m.get_type() for m in gcs.collect(1.0)}
+        assert gcs.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_ATTITUDE, -1) == 0
+        gcs.drain()
+        assert "ATTITUDE" not in {m.get_type() for m in gcs.collect(1.0)}  # off on the GCS instance
+        assert "ATTITUDE" in {m.get_type() for m in onboard.collect(1.0)}  # still on the onboard one
+        onboard.drain()
+        assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+        text = onboard.wait("STATUSTEXT", lambda m: "Armed" in m.text)
+        assert text is not None  # an event of the vehicle, sent on every instance
+        assert onboard.wait("HEARTBEAT", lambda m: m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED) is not None
+    finally:
+        sim.stop()
+        onboard.conn.close()
+        gcs.conn.close()

@@ -140,3 +140,53 @@ def test_mavsdk_mission(port_block):
     finally:
         m.destroy()
         sim.stop()
+
+
+@pytest.mark.slow
+def test_mavsdk_on_the_gcs_instance_and_coopd_on_the_onboard_instance_at_once(port_block):
+    """PX4 SITL's layout: a GCS (MAVSDK here) on the GCS port and coopd on the onboard port of the
+    same vehicle, each with its own streams; coopd keeps its poses while MAVSDK flies."""
+    from pymavlink.dialects.v20 import common as mav
+
+    from coopd.vehicle import LinkConfig, VehicleLink
+
+    gcs_port = port_block + 4
+    world = build_world("small_house", seed=0)
+    sim = Simulation(world, 1, seed=7, speed=2.0, camera=None, mavlink_base_port=port_block,
+                     gcs_port=gcs_port)
+    v = sim.vehicle(0)
+    assert v.link.target[1] == port_block and v.gcs_link.target[1] == gcs_port
+    assert v.gcs_link.bound_port != v.link.bound_port
+    link = VehicleLink(LinkConfig(connection=f"udpin:127.0.0.1:{port_block}"))
+    m = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    link.start()
+    sim.start()
+    try:
+        assert m.add_any_connection(f"udpin://127.0.0.1:{gcs_port}") == ConnectionResult.SUCCESS
+        system = m.first_autopilot(10.0)
+        assert system is not None and system.is_connected()
+        telemetry, action = Telemetry(system), Action(system)
+        poll(lambda: telemetry.health().is_armable, 15, "armable (GCS instance)")
+        poll(lambda: not link.odometry_stale() and link.poses.latest() is not None, 10, "coopd poses")
+        # Each instance keeps its own stream rates: coopd asked the onboard one for ODOMETRY at its
+        # rate; the GCS instance never streams ODOMETRY.
+        odometry_interval = 1.0 / link.config.odometry_rate_hz
+        assert v.link.intervals[mav.MAVLINK_MSG_ID_ODOMETRY] == pytest.approx(odometry_interval)
+        assert not v.gcs_link.intervals.get(mav.MAVLINK_MSG_ID_ODOMETRY)
+
+        action.set_takeoff_altitude(2.0)
+        action.arm()
+        poll(lambda: telemetry.armed(), 5, "armed")
+        action.takeoff()
+        poll(lambda: telemetry.position_velocity_ned().position.down_m < -1.9, 20, "takeoff to 2 m")
+        latest = link.poses.latest()
+        assert abs(latest.position[2] - 2.0) < 0.3  # coopd's map-frame height saw the climb too
+        action.land()
+        poll(lambda: not telemetry.armed(), 30, "landed and disarmed")
+        assert not link.odometry_stale()
+        assert v.gcs_link.stats["tx"] > 0 and v.link.stats["tx"] > v.gcs_link.stats["tx"]
+        assert v.link.stats["peer_heartbeats"] > 0 and v.gcs_link.stats["peer_heartbeats"] > 0
+    finally:
+        m.destroy()
+        link.stop()
+        sim.stop()

@@ -19,9 +19,12 @@ from firmware_sim.simulation import Simulation
 from firmware_sim.worlds import build_world
 
 WALL_SECONDS = float(os.environ.get("COOPD_E2E_SECONDS", "25"))
-# More cases for measurement runs, e.g. COOPD_E2E_CASES="maze:white,small_warehouse:default".
-CASES = [("small_house", "white"), ("small_house", "default")] + [
-    tuple(c.split(":")) for c in os.environ.get("COOPD_E2E_CASES", "").split(",") if ":" in c
+# More cases for measurement runs, e.g. COOPD_E2E_CASES="maze:white,small_warehouse:default:ardupilot".
+# The ArduPilot personality sends no ODOMETRY: coopd builds poses from LOCAL_POSITION_NED and the
+# ATTITUDE_QUATERNION it asks for, within the same bounds.
+CASES = [("small_house", "white", "px4"), ("small_house", "default", "px4"),
+         ("small_house", "default", "ardupilot")] + [
+    (*c.split(":")[:3], "px4")[:3] for c in os.environ.get("COOPD_E2E_CASES", "").split(",") if ":" in c
 ]
 SPEED = 2.0
 # The default preset without drift: white noise on every report only (drift makes the map itself drift).
@@ -29,8 +32,8 @@ WHITE = NoiseConfig(drift_xy_m_s=0.0, drift_z_m_s=0.0, drift_yaw_rad_s=0.0)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("world_name, noise", CASES)
-def test_route_maps_the_world(world_name, noise, tmp_path, udp_port):
+@pytest.mark.parametrize("world_name, noise, autopilot", CASES)
+def test_route_maps_the_world(world_name, noise, autopilot, tmp_path, udp_port):
     load_kernels()  # before the clock starts, as the daemon does at boot
     world = build_world(world_name, 0)
     sim = Simulation(
@@ -42,6 +45,7 @@ def test_route_maps_the_world(world_name, noise, tmp_path, udp_port):
         mavlink_base_port=udp_port,
         camera_dir=str(tmp_path),
         route="builtin",
+        autopilot=autopilot,
     )
     link = VehicleLink(LinkConfig(connection=f"udpin:127.0.0.1:{udp_port}"))
     cam = SocketDepthSource(SocketSourceConfig(sim.vehicle(0).camera_path))
@@ -83,6 +87,8 @@ def test_route_maps_the_world(world_name, noise, tmp_path, udp_port):
     report = {
         "world": world_name,
         "noise": noise,
+        "autopilot": autopilot,
+        "fallback_samples": link.counters["fallback_samples"],
         "sim_seconds": round(sim.time, 1),
         "speed": SPEED,
         "frames_received": cam.counters["frames"],
@@ -102,3 +108,5 @@ def test_route_maps_the_world(world_name, noise, tmp_path, udp_port):
     assert len(integrate_s) >= 100
     assert acc["observed_truth_cells"] > 2000
     assert acc["precision"] >= 0.9 and acc["recall"] >= 0.9, report
+    if autopilot == "ardupilot":  # the poses came from LOCAL_POSITION_NED + ATTITUDE_QUATERNION
+        assert report["fallback_samples"] >= 100 and report["pose_error_rms_m"] < 0.05, report
