@@ -17,10 +17,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coopd.geometry import rotation_angle_deg  # noqa: E402
-from coopd.merging.benchset import benchmark_pairs  # noqa: E402
 from coopd.merging.pair import merge_pair, prepare  # noqa: E402
 from coopd.merging.params import VARIANTS, coopd_params  # noqa: E402
 from coopd.merging.validation import agreement  # noqa: E402
+from firmware_sim.benchset import benchmark_pairs  # noqa: E402
 
 BANDS = [(0.0, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.4), (0.4, 0.5), (0.5, 0.6), (0.6, 1.01)]
 
