@@ -16,8 +16,9 @@ import numpy as np
 from coopd.geometry import apply, euler_to_matrix, invert, rigid
 from coopd.grid import OccupancyGrid
 from coopd.grid.cells import CELL_DTYPE, UNKNOWN
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ import numpy as np
 
 from coopd.grid import OccupancyGrid
 from coopd.grid.cells import OCCUPIED_THRESHOLD
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
 from .atomic import write_atomic
 from .points import known_cells
@@ -25,7 +26,7 @@ FREE_LEAF, OCCUPIED_LEAF, INNER = 1, 2, 3
 HEADER = "# Octomap OcTree binary file\n# written by coopd\nid OcTree\nsize {size}\nres {res}\ndata\n"
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=KERNEL_CACHE)
 def morton_codes(keys):
     """48-bit codes whose 3-bit groups, most significant first, are OctoMap child indices."""
     n = keys.shape[0]
