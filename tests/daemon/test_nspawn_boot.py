@@ -231,6 +231,10 @@ def test_install_and_first_start(installed):
     files = c.run("ls", "/var/lib/coopd").stdout.split()
     assert "version-reserve.json" in files, files  # an empty map (no vehicle) has no checkpoint to write
     assert "stopped in" in c.journal()
+    # after the install's warm-up and a run of the daemon (UMask=0027): the kernel cache is code the
+    # daemon loads, writable by its user only
+    writable = c.run("find", "/var/cache/coopd", "-perm", "/022").stdout.split()
+    assert writable == [], writable
 
 
 def test_watchdog_restarts_a_frozen_daemon_and_stop_is_clean(installed):

@@ -99,6 +99,9 @@ def test_unit_settings_required_by_the_design():
     assert s["ExecStart"] == ["/opt/coopd/bin/coopd --config /etc/coopd/coopd.toml"]
     env = dict(v.split("=", 1) for v in s["Environment"])
     assert env["NUMBA_CACHE_DIR"].startswith("/var/cache/" + s["CacheDirectory"][0] + "/")
+    # the kernel cache is code the daemon loads: nobody but its user may write there
+    assert int(s["UMask"][0], 8) & 0o022 == 0o022
+    assert int(s["CacheDirectoryMode"][0], 8) & 0o022 == 0
 
 
 def test_default_config_paths_match_the_unit_directories():
