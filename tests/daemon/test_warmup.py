@@ -32,5 +32,7 @@ def test_fills_the_cache_dir_the_daemon_loads_from(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("coopd warm-up: kernels compiled and cached in"), r.stdout
     cached = {p.name.split(".")[0] for p in cache.rglob("*.nbi")}
-    # what the daemon's start runs before READY=1: mapping, the map codec and the merge pipeline
-    assert {"raycast", "planes_kernels", "kernels", "preprocess", "validation"} <= cached, cached
+    # what the daemon's start runs before READY=1 (mapping, the map codec, the merge's first steps)
+    # and what its first real merge would compile (the search, refinement and validation)
+    assert {"raycast", "planes_kernels", "kernels", "preprocess", "level", "validation"} <= cached, cached
+    assert {"yaw_search", "mtm", "refine"} <= cached, cached
