@@ -4,7 +4,7 @@ A drone explores a whole building: viewpoints every ~0.8 m along the world's clo
 altitude, each with a small pose error, rays over the whole sphere up to a maximum range. The cells
 a ray crosses become free, the cell it stops in occupied, the rest stays unknown. The map is cast
 directly in its own frame (any yaw and translation in the world), with coopd's ray-cast kernel of
-coopd/merging/benchset.py, so the truth transform between two maps is exact: no resampling.
+firmware_sim/benchset.py, so the truth transform between two maps is exact: no resampling.
 
 `table5_pairs` builds the thesis' Table 5 experiment (two explorations of each of the six worlds, map
 B's frame turned 180 degrees and 7-10 m away from A's, both merge orders); `turned_copies` the
@@ -26,7 +26,7 @@ from coopd.geometry import apply, invert, rigid, rotation_z
 from coopd.grid import OccupancyGrid, transform_grid
 from coopd.grid.cells import CELL_DTYPE, UNKNOWN
 from coopd.io.atomic import write_atomic
-from coopd.merging.benchset import _cast, fibonacci_directions
+from firmware_sim.benchset import _cast, fibonacci_directions
 from firmware_sim.worlds import GENERATORS, World, build_world, point_on_loop
 
 WORLDS = tuple(GENERATORS)

@@ -1,7 +1,7 @@
 """Merge pairs from any firmware_sim world (the six or a generated one): two drones' partial maps.
 
 Each map is what benchset's ray-caster makes of a 10 m box of the world's analytic ground truth
-(coopd/merging/benchset.py: 14 viewpoints in free space at flight height, 6000 rays each, 6 m range,
+(firmware_sim/benchset.py: 14 viewpoints in free space at flight height, 6000 rays each, 6 m range,
 2 cm / 0.2 deg pose noise per viewpoint, 0.2 % flipped cells), cast directly in the map's own start
 frame (any yaw, roll/pitch <= 3 deg), so the truth transform is exact. The two boxes are centred on
 the world's exploration loop, `shift_m` apart in a straight line, which sets the overlap.

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 NUMBA_MODULES = [
     "coopd.sharing.codec_kernels", "coopd.sharing.planes_kernels", "coopd.grid.kernels",
     "coopd.mapping.raycast", "coopd.io.bt", *(f"coopd.merging.{m}" for m in (
-        "level", "ransac", "preprocess", "matching", "brief3d", "fast3d", "mtm", "orientation", "benchset",
+        "level", "ransac", "preprocess", "matching", "brief3d", "fast3d", "mtm", "orientation",
         "keypoint_filter", "validation", "yaw_search"))]
 """Modules with numba kernels: instrumented bytecode cannot be compiled by numba, so they run as is."""
 

@@ -42,10 +42,11 @@ from coopd.daemon.gcs import GcsReporter, Health
 from coopd.daemon.merger import Merger, find_merge_all, in_global_map, mergeable_cells
 from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.threads import ThreadPriorities, WorkerProgress
+from coopd.daemon.warmup import warm_up_kernels
 from coopd.geometry import euler_to_matrix, matrix_to_quat
 from coopd.grid import OccupancyGrid
 from coopd.io.atomic import PRIVATE, write_atomic
-from coopd.mapping import CameraMount, FrameRejected, Mapper, load_kernels
+from coopd.mapping import CameraMount, FrameRejected, Mapper
 from coopd.mapping.association import FrameAssociator
 from coopd.sharing import swarmkey
 from coopd.sharing import versions as map_versions
@@ -58,7 +59,6 @@ from coopd.sharing.wire import (
     DecodeLimits,
     MapMeta,
     MergeResultMessage,
-    decode_map,
     encode_map,
     encode_merge_result,
     with_version,
@@ -496,18 +496,8 @@ class Daemon:
         """Load (or compile) the mapping, codec and merging kernels before the budget measures its
         baseline and before the first frame counts against latency."""
         t0 = time.monotonic()
-        grid = decode_map(encode_map(load_kernels(self.config.mapping), MapMeta(self.vehicle_id, 1)))[0]
-        grid.counts()
-        if self.merge_fn is not None:
-            room = OccupancyGrid.empty((40, 40, 12), self.config.mapping.resolution)
-            room.cells[5:35, 5:35, 2] = 0
-            room.cells[5:35, (5, 34), 2:10] = 90
-            room.cells[(5, 34), 5:35, 2:10] = 90
-            try:
-                self.merge_fn(room, [room.copy()], None)
-            except Exception as e:  # merging stays on: the failure shows in status and in each merge
-                self.merge_start_error = f"warm-up merge failed: {type(e).__name__}: {e}"
-                log.error("merging: %s", self.merge_start_error, exc_info=True)
+        failed = warm_up_kernels(self.config.mapping, self.vehicle_id, self.merge_fn)
+        self.merge_start_error = failed or self.merge_start_error
         log.info("kernels ready in %.1f s", time.monotonic() - t0)
 
     def _remove_stray_temp_files(self) -> None:

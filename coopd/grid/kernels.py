@@ -3,9 +3,11 @@
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from .cells import INACCESSIBLE, P_MIN, UNKNOWN
 
-_JIT = {"nogil": True, "cache": True, "boundscheck": False}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE, "boundscheck": False}
 
 
 @nb.njit(**_JIT)

@@ -27,6 +27,7 @@ import numpy as np
 
 from coopd.grid import OccupancyGrid
 from coopd.grid.cells import CELL_DTYPE, OCCUPIED_THRESHOLD, P_MAX, P_MIN, UNKNOWN
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
 from .atomic import write_atomic
 from .points import known_cells
@@ -42,7 +43,7 @@ OT_NODE_EXTRA_BYTES = {"OcTree": 0, "ColorOcTree": 3, "OcTreeStamped": 4}
 MAX_HEADER_BYTES = 4096
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=KERNEL_CACHE)
 def morton_codes(keys):
     """48-bit codes whose 3-bit groups, most significant first, are OctoMap child indices."""
     n = keys.shape[0]
@@ -165,7 +166,7 @@ def parse_header(data: bytes) -> OctoMapHeader:
 ERR_TRUNCATED, ERR_TOO_DEEP = 1, 2
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=KERNEL_CACHE)
 def _f32(data, pos, scratch):
     """The little-endian float32 at data[pos]."""
     scratch[0] = (np.uint32(data[pos]) | (np.uint32(data[pos + 1]) << np.uint32(8))
@@ -173,7 +174,7 @@ def _f32(data, pos, scratch):
     return scratch.view(np.float32)[0]
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=KERNEL_CACHE)
 def _leaf(leaves, n, x0, y0, z0, size, value):
     leaves[n, 0] = x0
     leaves[n, 1] = y0
@@ -182,7 +183,7 @@ def _leaf(leaves, n, x0, y0, z0, size, value):
     leaves[n, 4] = value
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=KERNEL_CACHE)
 def _walk(data, pos, binary, extra, leaves, fill):
     """Pre-order walk of the tree in data[pos:]: (nodes, end, leaf count, error). With fill, leaves
     rows get (x0, y0, z0, size in cells, value): keys of the leaf's lowest corner, and for .bt 1 free
@@ -265,7 +266,7 @@ def _walk(data, pos, binary, extra, leaves, fill):
     return nodes, pos, n_leaves, 0
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=KERNEL_CACHE)
 def _fill(cells, lo, leaves, values):
     """Set each leaf's box of cells (keys relative to lo) to its value."""
     for n in range(leaves.shape[0]):

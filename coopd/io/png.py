@@ -1,14 +1,17 @@
 """PNG views of a map: top view and horizontal slices, north up, with a colour legend."""
 
 import io
+from typing import TYPE_CHECKING
 
 import numpy as np
-from PIL import Image, ImageDraw, PngImagePlugin
 
 from coopd.grid import OccupancyGrid, transform_grid
 from coopd.grid.cells import OCCUPIED_THRESHOLD
 
 from .atomic import write_atomic
+
+if TYPE_CHECKING:
+    from PIL import Image
 
 UNKNOWN, FREE, OCCUPIED, INACCESSIBLE = 0, 1, 2, 3
 COLOURS = np.array([(128, 128, 128), (255, 255, 255), (0, 0, 0), (200, 0, 0)], dtype=np.uint8)
@@ -73,12 +76,28 @@ def slice_classes(grid: OccupancyGrid, z_m: float, threshold: int = OCCUPIED_THR
     return classify(grid.cells[:, :, z], threshold)
 
 
+class PillowMissing(ImportError):
+    """PNG export without Pillow, which the drone install leaves out (it comes with the tools extra)."""
+
+
+def _pillow():
+    """PIL's Image, ImageDraw and PngImagePlugin, imported on first use: maps load, convert to the
+    other formats and travel without Pillow; only drawing a PNG needs it."""
+    try:
+        from PIL import Image, ImageDraw, PngImagePlugin
+    except ImportError as e:
+        raise PillowMissing("PNG export needs Pillow, which comes with coopd's tools extra: "
+                            "pip install 'coopd[tools]' (or scripts/install --extras tools)") from e
+    return Image, ImageDraw, PngImagePlugin
+
+
 def scale_for(shape_xy) -> int:
     return max(1, min(16, TARGET_SIZE // max(shape_xy)))
 
 
-def render(classes: np.ndarray, title: str, colours: np.ndarray = COLOURS, labels=LABELS) -> Image.Image:
+def render(classes: np.ndarray, title: str, colours: np.ndarray = COLOURS, labels=LABELS) -> "Image.Image":
     """An RGB image of (m_x, m_y) classes, x to the right, y (north) up, legend underneath."""
+    Image, ImageDraw, _ = _pillow()
     s = scale_for(classes.shape)
     rgb = colours[classes.T[::-1]]
     rgb = np.repeat(np.repeat(rgb, s, axis=0), s, axis=1)
@@ -95,7 +114,8 @@ def render(classes: np.ndarray, title: str, colours: np.ndarray = COLOURS, label
     return canvas
 
 
-def _save(image: Image.Image, path) -> None:
+def _save(image: "Image.Image", path) -> None:
+    PngImagePlugin = _pillow()[2]
     buf = io.BytesIO()
     meta = PngImagePlugin.PngInfo()
     meta.add_text("Title", image.info.get("Title", "coopd map"))

@@ -19,9 +19,11 @@ Two ways to apply HIMM along the rays:
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..grid.cells import INACCESSIBLE, P_MAX, P_MIN, P_PRIOR, UNKNOWN
 
-_JIT = {"nogil": True, "cache": True, "boundscheck": False, "error_model": "numpy"}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE, "boundscheck": False, "error_model": "numpy"}
 
 MODE_MARK = 0
 MODE_PER_RAY = 1

@@ -10,11 +10,13 @@ angles.
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..geometry import euler_to_matrix
 from .fast3d import _nh_mean
 from .params import MergeParams
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 def make_sample(tests: int, window: int, seed: int) -> np.ndarray:

@@ -4,9 +4,11 @@ import numba as nb
 import numpy as np
 from scipy import ndimage
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from .params import MergeParams
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 def circle_mask(radius: int) -> np.ndarray:

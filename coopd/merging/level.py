@@ -9,10 +9,12 @@ gravity-aligned search then only has yaw and translation left to find.
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..geometry import euler_to_matrix, rigid
 from ..grid import OccupancyGrid
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 @nb.njit(**_JIT)

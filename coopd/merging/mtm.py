@@ -7,7 +7,9 @@ before estimating), which is the full-resolution correction of eq. 34 done up fr
 import numba as nb
 import numpy as np
 
-_JIT = {"nogil": True, "cache": True}
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 @nb.njit(**_JIT)

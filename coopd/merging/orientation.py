@@ -18,9 +18,11 @@ turns a map through 0-360 degrees in 15 degree steps):
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from .params import MergeParams
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 SOLVERS = {"gauss_seidel": 0, "jacobi": 1}
 
 

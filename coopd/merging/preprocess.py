@@ -10,10 +10,12 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..grid import OccupancyGrid
 from .params import MergeParams
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 @dataclass(frozen=True)

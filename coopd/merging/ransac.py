@@ -10,11 +10,13 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..geometry import rotation_angle_deg
 from .mtm import estimate, kabsch, kabsch_yaw
 from .params import MergeParams
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 MODELS = {"homography": 0, "rigid": 1, "yaw": 2}
 SAMPLE = {0: 5, 1: 3, 2: 2}
 

@@ -15,11 +15,13 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..geometry import apply
 from .mtm import estimate
 from .preprocess import gaussian
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 SUBCELL_STEPS = np.arange(-4, 5) / 4.0
 """Shifts tried per axis by subcell_shift, in cells."""
 

@@ -11,10 +11,12 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..geometry import invert
 from ..grid import OccupancyGrid
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 UNSEEN, FREE, NEAR_OCCUPIED = 0, 1, 2
 
 

@@ -14,11 +14,13 @@ import numba as nb
 import numpy as np
 from scipy import fft as sfft
 
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
 from ..geometry import rigid, rotation_z
 from ..grid import OccupancyGrid
 from .params import MergeParams
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,9 @@ v a cell value and 1 <= c <= 127 expands to c * 127**L copies of v, L = -10 - M.
 import numba as nb
 import numpy as np
 
-_JIT = {"nogil": True, "cache": True, "boundscheck": False}
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
+_JIT = {"nogil": True, "cache": KERNEL_CACHE, "boundscheck": False}
 
 CELL_MIN = -2
 CELL_MAX = 100

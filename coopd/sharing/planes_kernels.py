@@ -8,7 +8,9 @@ NIBBLE_VALUES, 15 -> the next raw byte (any cell value); nibbles 10..14 are inva
 import numba as nb
 import numpy as np
 
-_JIT = {"nogil": True, "cache": True, "boundscheck": False}
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
+
+_JIT = {"nogil": True, "cache": KERNEL_CACHE, "boundscheck": False}
 
 NIBBLE_VALUES = np.array([10, 20, 30, 40, 50, 60, 70, 80, 90, -2], dtype=np.int8)
 """The values HIMM updates (±10, -30 from 50) reach, and inaccessible: one nibble each."""

@@ -6,7 +6,7 @@ truth is exact):
 - fresh: --worlds generated worlds `gen:SEED` (all parameters drawn from the seed), --per-world pairs
   each; the world seeds are drawn from --seed, itself new on every run unless given, and printed;
 - reference: the six firmware_sim worlds (seed 0), --references pairs each, the same every run;
-- benchset: coopd/merging/benchset.py's building, --pairs overlapping and --far far-apart pairs.
+- benchset: firmware_sim/benchset.py's building, --pairs overlapping and --far far-apart pairs.
 Fresh pairs are also merged with map B changed (--robust): mapped at 0.05 or 0.2 m instead of 0.1,
 its drone started 1 m higher, 10 % of its known cells flipped.
 
@@ -36,10 +36,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coopd.geometry import rotation_angle_deg  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
-from coopd.merging.benchset import benchmark_pairs  # noqa: E402
 from coopd.merging.pair import merge_pair, prepare  # noqa: E402
 from coopd.merging.params import VARIANTS, coopd_params  # noqa: E402
 from coopd.merging.validation import agreement  # noqa: E402
+from firmware_sim.benchset import benchmark_pairs  # noqa: E402
 from firmware_sim.exploration import occupied_points  # noqa: E402
 from firmware_sim.mergeset import displacement, world_pairs  # noqa: E402
 from firmware_sim.worlds import GENERATORS, build_world  # noqa: E402

@@ -22,9 +22,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coopd.geometry import invert, rigid, rotation_angle_deg, rotation_z  # noqa: E402
 from coopd.merging import Hint, merge_all  # noqa: E402
-from coopd.merging.benchset import benchmark_pairs, make_chain, make_world  # noqa: E402
 from coopd.merging.hints import hints_for  # noqa: E402
 from coopd.sharing.wire import MergeEdge, MergeResultMessage  # noqa: E402
+from firmware_sim.benchset import benchmark_pairs, make_chain, make_world  # noqa: E402
 
 
 def _cpu(fn):

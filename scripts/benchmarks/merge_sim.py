@@ -1,4 +1,4 @@
-"""Merging on real flight maps: firmware_sim drones map with drifting odometry (coopd/merging/simset.py).
+"""Merging on real flight maps: firmware_sim drones map with drifting odometry (firmware_sim/simset.py).
 
 For every world and seed, every ordered pair of drones goes through merge_pair (correct: within
 --tol-m / --tol-deg of the truth at t = 0). Wrong candidates must be rejected: pairs of maps from
@@ -21,9 +21,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coopd.geometry import rigid, rotation_angle_deg, rotation_z  # noqa: E402
-from coopd.merging import simset  # noqa: E402
 from coopd.merging.pair import judge, merge_prepared, prepare  # noqa: E402
 from coopd.merging.params import coopd_params  # noqa: E402
+from firmware_sim import simset  # noqa: E402
 
 PERTURBATIONS = [(1.0, 0.0), (2.0, 0.0), (3.0, 0.0), (0.0, 10.0), (0.0, 30.0), (0.0, 90.0), (1.5, 20.0),
                  (2.5, 45.0)]

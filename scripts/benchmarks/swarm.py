@@ -2,7 +2,7 @@
 
 The thesis experiment (§10.4): the maps are already built, then shared and merged. Each of N real
 `coopd` processes on loopback resumes, as after a restart, from a checkpoint holding one drone's
-real flight map of one world (coopd/merging/simset.py: every drone of one seeded flight, its own
+real flight map of one world (firmware_sim/simset.py: every drone of one seeded flight, its own
 start pose and route, mapped with its drifting odometry; flown once, then cached in out/simset/).
 MAVLink points at a silent udpin port and the camera at a missing socket: the daemons are grounded.
 Each daemon is frozen (SIGSTOP) once it runs, and all resume together at t = 0, so no daemon
@@ -41,8 +41,8 @@ from coopd.daemon.control import ControlError, request  # noqa: E402
 from coopd.daemon.merger import in_global_map  # noqa: E402
 from coopd.daemon.service import save_map_frame  # noqa: E402
 from coopd.geometry import rotation_angle_deg  # noqa: E402
-from coopd.merging import simset  # noqa: E402
 from coopd.sharing.wire import MapMeta  # noqa: E402
+from firmware_sim import simset  # noqa: E402
 
 THESIS = {"drones": 10, "t_share_s": 6.0, "t_merge_s": 340.0, "t_total_s": 350.0,
           "machine": "thesis §10.4, i7 (C++)"}

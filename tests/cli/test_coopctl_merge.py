@@ -8,8 +8,8 @@ import pytest
 from coopd.cli.coopctl import main
 from coopd.geometry import rotation_angle_deg
 from coopd.io import load_cmap, save_cmap
-from coopd.merging.benchset import make_pair, make_world
 from coopd.sharing.wire import MapMeta
+from firmware_sim.benchset import make_pair, make_world
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,9 @@ from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.merger import Merger
 from coopd.geometry import invert, rigid, rotation_angle_deg, rotation_z
 from coopd.merging import merge_all
-from coopd.merging.benchset import make_chain, make_world
 from coopd.sharing import wire
 from coopd.sharing.wire import MapMeta, encode_map
+from firmware_sim.benchset import make_chain, make_world
 
 
 @pytest.fixture(scope="module")

@@ -27,9 +27,9 @@ def unit_with_standin(tmp_path: Path, text: str | None = None) -> Path:
     standin.write_text("#!/bin/sh\nexit 0\n")
     standin.chmod(0o755)
     text = UNIT.read_text() if text is None else text
-    assert "ExecStart=/usr/local/bin/coopd " in text
+    assert "ExecStart=/opt/coopd/bin/coopd " in text
     unit = tmp_path / "coopd.service"
-    unit.write_text(text.replace("ExecStart=/usr/local/bin/coopd ", f"ExecStart={standin} "))
+    unit.write_text(text.replace("ExecStart=/opt/coopd/bin/coopd ", f"ExecStart={standin} "))
     return unit
 
 
@@ -52,7 +52,7 @@ def test_systemd_analyze_verify_is_clean(tmp_path):
     [
         ("Type=notify", "Type=notifyy"),
         ("WatchdogSec=10", "WatchdogSec=10\nFooBar=1"),
-        ("ExecStart=/usr/local/bin/coopd ", "ExecStart=/nonexistent/coopd "),
+        ("ExecStart=/opt/coopd/bin/coopd ", "ExecStart=/nonexistent/coopd "),
     ],
 )
 def test_verify_check_catches_broken_units(tmp_path, change):
@@ -96,9 +96,12 @@ def test_unit_settings_required_by_the_design():
         assert s.get(key) == [value], key
     assert int(s["WatchdogSec"][0]) > 0
     assert "MemoryDenyWriteExecute" not in s  # numba JIT needs writable+executable memory
-    assert s["ExecStart"] == ["/usr/local/bin/coopd --config /etc/coopd/coopd.toml"]
+    assert s["ExecStart"] == ["/opt/coopd/bin/coopd --config /etc/coopd/coopd.toml"]
     env = dict(v.split("=", 1) for v in s["Environment"])
     assert env["NUMBA_CACHE_DIR"].startswith("/var/cache/" + s["CacheDirectory"][0] + "/")
+    # the kernel cache is code the daemon loads: nobody but its user may write there
+    assert int(s["UMask"][0], 8) & 0o022 == 0o022
+    assert int(s["CacheDirectoryMode"][0], 8) & 0o022 == 0
 
 
 def test_default_config_paths_match_the_unit_directories():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from coopd.merging.benchset import make_pair, make_world
+from firmware_sim.benchset import make_pair, make_world
 
 
 @pytest.fixture(scope="session")

@@ -1,7 +1,7 @@
 import numpy as np
 
 from coopd.geometry import rotation_angle_deg
-from coopd.merging.benchset import make_pair, make_world
+from firmware_sim.benchset import make_pair, make_world
 
 
 def test_world_is_deterministic_and_building_like(world):

@@ -4,12 +4,12 @@ from scipy.spatial import cKDTree
 
 from coopd.geometry import apply, invert, rigid, rotation_z
 from coopd.grid import transform_grid
-from coopd.merging.benchset import make_world, partial_map
 from coopd.merging.brief3d import describe, make_sample
 from coopd.merging.features import extract
 from coopd.merging.matching import hamming_block
 from coopd.merging.orientation import orientations
 from coopd.merging.params import MergeParams
+from firmware_sim.benchset import make_world, partial_map
 
 
 def _scene(seed=3):

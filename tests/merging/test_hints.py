@@ -10,8 +10,8 @@ import pytest
 
 from coopd.geometry import invert, rigid, rotation_angle_deg, rotation_z
 from coopd.merging import Hint, merge_all
-from coopd.merging.benchset import make_chain
 from coopd.merging.hints import MAX_HINTS, hints_for
+from firmware_sim.benchset import make_chain
 
 
 def _error(t, truth):

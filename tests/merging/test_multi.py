@@ -3,8 +3,8 @@ import pytest
 
 from coopd.geometry import invert, rigid, rotation_angle_deg, rotation_z
 from coopd.grid import OccupancyGrid, fuse_transformed
-from coopd.merging.benchset import known_overlap, make_chain
 from coopd.merging.multi import merge_all
+from firmware_sim.benchset import known_overlap, make_chain
 
 
 def test_fusion_follows_table_3_under_a_transform():

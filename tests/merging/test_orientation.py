@@ -5,12 +5,12 @@ import pytest
 
 from coopd.geometry import apply, rigid, rotation_z
 from coopd.grid import transform_grid
-from coopd.merging.benchset import make_world, partial_map
 from coopd.merging.fast3d import fast3d
 from coopd.merging.keypoint_filter import filter_keypoints
 from coopd.merging.orientation import orientations
 from coopd.merging.params import MergeParams
 from coopd.merging.preprocess import preprocess
+from firmware_sim.benchset import make_world, partial_map
 
 ANGLES = range(0, 360, 15)
 

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from coopd.geometry import rigid, rotation_angle_deg, rotation_z
-from coopd.merging import coopd_params, simset
+from coopd.merging import coopd_params
 from coopd.merging.pair import judge, merge_prepared, prepare
+from firmware_sim import simset
 
 pytestmark = pytest.mark.slow
 

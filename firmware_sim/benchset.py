@@ -13,11 +13,12 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from ..geometry import apply, euler_to_matrix, invert, rigid
-from ..grid import OccupancyGrid
-from ..grid.cells import CELL_DTYPE, UNKNOWN
+from coopd.geometry import apply, euler_to_matrix, invert, rigid
+from coopd.grid import OccupancyGrid
+from coopd.grid.cells import CELL_DTYPE, UNKNOWN
+from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
-_JIT = {"nogil": True, "cache": True}
+_JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 @dataclass(frozen=True)
@@ -205,7 +206,7 @@ def partial_map(world: World, world_from_map: np.ndarray, box_m, rng, viewpoints
 
 def known_overlap(a: PartialMap, b: PartialMap) -> float:
     """|known A ∩ known B| / min(|known A|, |known B|), measured in the world frame."""
-    from ..grid import transform_grid
+    from coopd.grid import transform_grid
 
     wa = transform_grid(a.grid, a.world_from_map)
     wb = transform_grid(b.grid, b.world_from_map)

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import invert, matrix_to_quat, rigid
-from ..grid import OccupancyGrid
-from ..mapping import CameraMount, Intrinsics, Mapper, MapperConfig, Pose
+from coopd.geometry import invert, matrix_to_quat, rigid
+from coopd.grid import OccupancyGrid
+from coopd.mapping import CameraMount, Intrinsics, Mapper, MapperConfig, Pose
 
 WORLDS = ("maze", "small_house", "small_warehouse", "bookstore", "hospital", "racetrack")
 CACHE_DIR = Path("out/simset")

@@ -1,0 +1,56 @@
+"""The drone install (`pip install coopd`, scripts/install) carries the daemon and coopctl only:
+no dependency that only the emulator or the map tools use, and no module of the product package
+that imports them at load time. scripts/bench install_size measures what that comes to on disk."""
+
+import ast
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+EMULATOR_OR_TOOLS = {"mujoco", "pillow", "firmware_sim"}
+
+
+def names(requirements) -> set[str]:
+    return {r.split(";")[0].split("[")[0].split(">")[0].split("=")[0].split("<")[0].strip().lower()
+            for r in requirements}
+
+
+def test_drone_dependencies_leave_out_the_emulator_and_the_tools():
+    assert not names(PROJECT["dependencies"]) & EMULATOR_OR_TOOLS
+    extras = PROJECT["optional-dependencies"]
+    assert names(extras["sim"]) == {"mujoco"} and names(extras["tools"]) == {"pillow"}
+    assert "coopd[sim,tools]" in extras["test"]  # scripts/setup test: everything the tests use
+
+
+def imported(nodes) -> set[str]:
+    found = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            found |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module.split(".")[0])
+    return found
+
+
+def at_load(tree: ast.Module) -> list[ast.AST]:
+    """The nodes that run when the module loads: not function bodies, not TYPE_CHECKING blocks."""
+    out = []
+    for node in tree.body:
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            continue
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            continue
+        out.extend(ast.walk(node))
+    return out
+
+
+def test_product_package_never_imports_the_emulator_and_tools_only_on_use():
+    problems = []
+    for path in sorted((ROOT / "coopd").rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        name = path.relative_to(ROOT)
+        if "firmware_sim" in imported(ast.walk(tree)):
+            problems.append(f"{name} imports firmware_sim")
+        problems += [f"{name} imports {m} when it loads" for m in imported(at_load(tree)) & {"mujoco", "PIL"}]
+    assert problems == []
