@@ -80,6 +80,18 @@ def load_flight(path: Path) -> dict:
 
 
 # ------------------------------------------------------------------------------- the replay
+def flight_span(trajectory: np.ndarray, pad_s: float = 1.0) -> np.ndarray:
+    """The rows of a trajectory from pad_s before the vehicle first moved (5 cm) to pad_s after it
+    last moved: the time on the ground sees what takeoff sees, and costs the replay nothing new."""
+    left_start = np.linalg.norm(trajectory[:, 1:4] - trajectory[0, 1:4], axis=1) > 0.05
+    before_end = np.linalg.norm(trajectory[:, 1:4] - trajectory[-1, 1:4], axis=1) > 0.05
+    if not left_start.any():
+        return trajectory
+    t = trajectory[:, 0]
+    t0, t1 = t[np.argmax(left_start)] - pad_s, t[len(t) - 1 - np.argmax(before_end[::-1])] + pad_s
+    return trajectory[(t >= t0) & (t <= t1)]
+
+
 def camera_poses(trajectory: np.ndarray, cam: CameraConfig, period_s: float):
     """(origin, optical-frame rotation) in the world every period_s along a true trajectory (rows t,
     x, y, z, qw, qx, qy, qz), interpolated between its samples."""
@@ -197,7 +209,7 @@ def score_world(world_name: str, seed: int, run_out: Path, report: dict, frame_s
         vid = int(path.stem.split("_")[1])
         f = flights[vid] = load_flight(path)
         cam = f["camera"]
-        f["poses"] = camera_poses(f["trajectory"], cam, frame_step / cam.rate_hz)
+        f["poses"] = camera_poses(flight_span(f["trajectory"]), cam, frame_step / cam.rate_hz)
         f["frames"] = render_frames(world, cam, f["poses"])
         seen[vid], f["free"] = truth_samples(f["frames"], f["poses"], cam, world.shapes, config.max_range,
                                              config.resolution, seed * 1000 + vid)

@@ -37,6 +37,18 @@ def test_camera_poses_interpolate_the_trajectory():
     assert np.allclose(rot[:, 2], [0.0, 1.0, 0.0], atol=1e-9)    # optical z looks along the heading
 
 
+def test_flight_span_leaves_out_the_time_on_the_ground():
+    flight = straight_flight((0.0, 0.0), 0.0, seconds=4.0)
+    flight[:, 0] += 10.0
+    parked = np.repeat(flight[:1], 100, axis=0)
+    parked[:, 0] = np.arange(100) * 0.04 + 6.0
+    landed = np.repeat(flight[-1:], 100, axis=0)
+    landed[:, 0] = np.arange(100) * 0.04 + 14.0
+    span = bench.flight_span(np.vstack([parked, flight, landed]))
+    assert span[0, 0] == pytest.approx(10.0 + 0.12 - 1.0)
+    assert span[-1, 0] == pytest.approx(14.0 - 0.12 + 1.0, abs=0.05)
+
+
 def test_octree_grid_holds_octomap_cells_where_octomap_has_them():
     octomap = pytest.importorskip("octomap")
     tree = octomap.OcTree(0.1)
