@@ -60,7 +60,8 @@ def run_demo(world: str, a, run_out: Path) -> dict | None:
     if not a.tabulate:
         report_path.unlink(missing_ok=True)
         cmd = [sys.executable, str(ROOT / "scripts" / "demo.py"), "--world", world, "--drones", str(a.drones),
-               "--seed", str(a.seed), "--speed", str(a.speed), "--out", str(run_out)]
+               "--seed", str(a.seed), "--speed", str(a.speed), "--timeout", str(a.demo_timeout),
+               "--out", str(run_out)]
         with open(run_out / "demo.log", "wb") as log:
             rc = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
         if not report_path.exists():
@@ -314,6 +315,8 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--speed", type=float, default=2.0)
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
+    p.add_argument("--demo-timeout", type=float, default=900.0,
+                   help="wall seconds a demo may take to start, fly and land (then reports what there is)")
     p.add_argument("--frame-step", type=int, default=FRAME_STEP, help="replay every n-th camera frame")
     p.add_argument("--tabulate", action="store_true", help="no flights: score the runs already there")
     a = p.parse_args()
