@@ -182,7 +182,7 @@ def octree_grid(tree, res: float):
 
 def truth_samples(frames, poses, cam: CameraConfig, shapes, max_range: float, res: float, seed: int):
     """Surface points the frames saw within max range, and truly free points along a seeded subset
-    of the same rays (firmware_sim.accuracy.ray_samples)."""
+    of the same rays that have a reading (firmware_sim.accuracy.ray_samples)."""
     rays = optical_rays(cam).reshape(cam.height, cam.width, 3)[::SAMPLE_PIXEL_STEP, ::SAMPLE_PIXEL_STEP]
     rays = rays.reshape(-1, 3)
     norms = np.linalg.norm(rays, axis=1)
@@ -194,7 +194,10 @@ def truth_samples(frames, poses, cam: CameraConfig, shapes, max_range: float, re
         hits.append(np.where(np.isfinite(d), d * norms, np.inf))
     origins, dirs, hits = np.concatenate(origins), np.concatenate(dirs), np.concatenate(hits)
     surface, _ = acc.ray_samples(origins, dirs, hits, max_range, res, [], res)
-    pick = np.random.default_rng(seed).choice(len(hits), min(FREE_RAYS, len(hits)), replace=False)
+    # Free space is what a reading shows: rays with no return (sky, beyond the camera's reach)
+    # clear nothing in any mapper, so they give no free points.
+    read = np.flatnonzero(np.isfinite(hits))
+    pick = np.random.default_rng(seed).choice(read, min(FREE_RAYS, len(read)), replace=False)
     _, free = acc.ray_samples(origins[pick], dirs[pick], hits[pick], max_range, res, shapes, res)
     return surface, free
 
