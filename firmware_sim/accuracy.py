@@ -1,7 +1,10 @@
-"""Accuracy against the world's ground truth: occupied-cell precision/recall of a map, offset errors.
+"""Accuracy against the world's ground truth: how far a map's occupied cells lie from the true
+surfaces, how much of the surfaces it saw it holds, its free space; the strict voxel figures; offset
+errors.
 
 Pure functions over numpy arrays; a map is anything with `cells` (int8 log-odds-like values, -1 =
-unknown), `offset` (key of cells[0, 0, 0]) and `resolution` (m), as coopd's OccupancyGrid.
+unknown), `offset` (key of cells[0, 0, 0]) and `resolution` (m), as coopd's OccupancyGrid; cell key
+k is centred at k * resolution.
 """
 
 from __future__ import annotations
@@ -9,6 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from coopd.geometry import invert
 
 OCCUPIED = 50
 """Cell value from which a map cell counts as occupied (coopd.grid.OCCUPIED_THRESHOLD)."""
@@ -71,6 +76,104 @@ def map_accuracy(grid, to_world, gt, gt_origin, gt_res=0.1, threshold=OCCUPIED) 
         "precision_tol1": float(hits(gt1, occ_idx, occ_ok).mean()) if len(occ) else 0.0,
         "recall_tol1": float((observed & pred1).sum() / max(observed.sum(), 1)),
     }
+
+
+def surface_distance(points, shapes, chunk: int = 200_000) -> np.ndarray:
+    """Distance (m) from each point (n, 3, world frame) to the nearest face of any shape: the
+    absolute signed distance of the nearest shape. Faces buried inside another shape (a wall's foot
+    on the floor) count as surface too; they lie within a wall's thickness of a real one."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.full(len(pts), np.inf)
+    for lo in range(0, len(pts), chunk):
+        p = pts[lo : lo + chunk]
+        best = out[lo : lo + chunk]
+        for s in shapes:
+            np.minimum(best, np.abs(_signed_distance(s, p)), out=best)
+    return out
+
+
+def _signed_distance(shape, p: np.ndarray) -> np.ndarray:
+    """Signed distance of points to one Box or vertical Cylinder (negative inside)."""
+    c = np.asarray(shape.center, dtype=np.float64)
+    if hasattr(shape, "radius"):
+        radial = np.linalg.norm(p[:, :2] - c[:2], axis=1) - shape.radius
+        q = np.stack([radial, np.abs(p[:, 2] - c[2]) - shape.half_height], axis=1)
+    else:
+        q = np.abs(p - c) - np.asarray(shape.half, dtype=np.float64)
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+def occupied_centres(grid, to_world, threshold=OCCUPIED) -> np.ndarray:
+    """World coordinates (n, 3) of the centres of a map's occupied cells."""
+    keys = np.argwhere(grid.cells >= threshold) + np.asarray(grid.offset)
+    return to_world(keys * grid.resolution) if len(keys) else np.zeros((0, 3))
+
+
+def surface_accuracy(grid, world_from_map, shapes, seen_points, threshold=OCCUPIED) -> dict:
+    """Precision and recall of a map (its frame at the 4x4 `world_from_map`) against the true
+    surfaces, with one cell of tolerance.
+
+    Precision: distance from each occupied cell's centre to the nearest true surface (mean, p95,
+    share within one cell: a perfect voxelisation's centres are within half a cell diagonal).
+    Recall: share of `seen_points` (world points on the surfaces the vehicle saw) whose cell in
+    the map, or one of its 26 neighbours, is occupied."""
+    from scipy import ndimage
+
+    res = float(grid.resolution)
+    to_world, to_map = transform_points(world_from_map), transform_points(invert(world_from_map))
+    centres = occupied_centres(grid, to_world, threshold)
+    seen = np.asarray(seen_points, dtype=np.float64).reshape(-1, 3)
+    out = {"occupied_cells": int(len(centres)), "seen_points": int(len(seen)),
+           "surface_precision": 0.0, "surface_mean_m": None, "surface_p95_m": None, "surface_recall": 0.0}
+    if not len(centres):
+        return out
+    d = surface_distance(centres, shapes)
+    within = res * (1 + 1e-9)   # a centre exactly one cell away counts, rounding aside
+    out.update(surface_precision=float(np.mean(d <= within)), surface_mean_m=float(d.mean()),
+               surface_p95_m=float(np.percentile(d, 95)))
+    if len(seen):
+        near = ndimage.binary_dilation(grid.cells >= threshold, np.ones((3, 3, 3), bool))
+        out["surface_recall"] = float(np.mean(_cells_at(near, grid, to_map(seen), False)))
+    return out
+
+
+def _cells_at(volume, grid, points_map, outside):
+    """volume[cell of each map-frame point], `outside` for points beyond the grid."""
+    keys = np.round(points_map / grid.resolution).astype(np.int64) - np.asarray(grid.offset)
+    inside = np.all((keys >= 0) & (keys < np.array(volume.shape)), axis=1)
+    out = np.full(len(keys), outside, dtype=volume.dtype)
+    out[inside] = volume[tuple(keys[inside].T)]
+    return out
+
+
+def free_share(grid, world_from_map, points, threshold=OCCUPIED) -> float:
+    """Share of truly free world points (n, 3) that the map (its frame at the 4x4
+    `world_from_map`) holds as free: known and under the occupied threshold."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(pts):
+        return 0.0
+    values = _cells_at(grid.cells, grid, transform_points(invert(world_from_map))(pts), -1)
+    return float(np.mean((values >= 0) & (values < threshold)))
+
+
+def ray_samples(origins, dirs, hit_m, max_range: float, step: float, shapes, clearance: float):
+    """Truth samples of what rays saw: the surface points they hit within max range, and free
+    points every `step` metres along each ray up to its hit or max range, keeping only those more
+    than `clearance` from any surface (so a cell holding one is truly free).
+
+    origins, dirs (n, 3; dirs unit), hit_m (n; distance to the first surface, inf for none)."""
+    o, d = np.asarray(origins, np.float64).reshape(-1, 3), np.asarray(dirs, np.float64).reshape(-1, 3)
+    h = np.asarray(hit_m, np.float64).reshape(-1)
+    seen = h <= max_range
+    surface = o[seen] + d[seen] * h[seen, None]
+    reach = np.minimum(h, max_range)
+    steps = np.arange(step, max_range, step)
+    along = steps[None, :] < reach[:, None]
+    ray, k = np.nonzero(along)
+    free = o[ray] + d[ray] * steps[k, None]
+    if len(free):
+        free = free[surface_distance(free, shapes) > clearance]
+    return surface, free
 
 
 def transform_points(t: np.ndarray):

@@ -21,7 +21,7 @@ import numpy as np
 
 from coopd.geometry import apply, invert, rigid
 from coopd.grid import OccupancyGrid
-from coopd.merging import benchset
+from firmware_sim import benchset
 from firmware_sim.exploration import flipped
 from firmware_sim.worlds import World, point_on_loop
 

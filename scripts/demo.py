@@ -13,6 +13,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -109,6 +111,16 @@ def main() -> int:
             print("demo: stopped; every process and namespace it made is gone")
 
 
+def save_flight(swarm: Swarm, i: int, status: dict, path: Path) -> None:
+    """What scoring the maps needs after the run: the drone's true trajectory, its camera, its map
+    frame in the world and the drones whose maps its global map holds (scripts/bench accuracy)."""
+    cam = swarm.sim.vehicles[i].camera.cfg
+    members = [i + 1] + sorted(swarm.merged_vehicles(status))
+    np.savez(path, trajectory=swarm.sim.trajectory(i), world_from_map=swarm.map_to_world(i, status),
+             members=np.array(members), camera=np.array(
+                 [cam.width, cam.height, cam.hfov_deg, cam.rate_hz, cam.tilt_down_deg, *cam.offset_body]))
+
+
 def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
     """Print what happened per drone, dump every global map to out/, write out/demo_report.json."""
     out = args.out
@@ -157,7 +169,9 @@ def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
             entry["global"] = g = swarm.map_accuracy(i, grid, s)
             _, blob = swarm.daemons[i].request("dump-map", {"map": "local"}, timeout_s=60.0,
                                                max_blob_bytes=512 * 1024 * 1024)
+            write_atomic(out / f"local_{vid}.cmap", blob)
             entry["local"] = own = swarm.map_accuracy(i, decode_map(blob)[0], s)
+            save_flight(swarm, i, s, out / f"flight_{vid}.npz")
             print(f"   vs ground truth: global map precision {g['precision']:.3f} recall {g['recall']:.3f} "
                   f"(within one cell {g['precision_tol1']:.3f} / {g['recall_tol1']:.3f}); own map "
                   f"{own['precision']:.3f} / {own['recall']:.3f}; odometry drift since the map origin "

@@ -16,6 +16,9 @@ MAX_SCRATCH_CELLS = 64_000_000
 
 
 _TRAVERSALS = {"bresenham": raycast.TRAVERSAL_BRESENHAM, "exact": raycast.TRAVERSAL_EXACT}
+BEYOND_MAX_RANGE = ("clear", "drop")
+FARTHEST_READING_M = 1000.0
+"""A depth beyond this is no camera's reading but a corrupt one: skipped, never a ray."""
 
 
 @dataclass(frozen=True)
@@ -26,6 +29,11 @@ class MapperConfig:
     """m_r, metres per cell."""
     min_range: float = 0.2
     max_range: float = 5.0
+    """Rays are cut at this range: the cells up to it are misses, the cut end is no hit."""
+    beyond_max_range: str = "clear"
+    """A pixel reading farther than max_range: "clear" casts its ray cut at max range, clearing
+    free space and marking no hit (OctoMap's maxrange); "drop" skips the pixel, for a camera
+    whose far readings are too noisy to trust even as free space."""
     hit_increment: int = 10
     """m_I+: added to cells in the hit region."""
     miss_decrement: int = 15
@@ -42,6 +50,11 @@ class MapperConfig:
     """Ray-tracing threads (mark mode only); results are identical for any count."""
     growth: GrowthPolicy = field(default_factory=GrowthPolicy)
 
+    @property
+    def far_limit(self) -> float:
+        """Farthest depth reading that makes a ray (longer ones are cut at max_range)."""
+        return FARTHEST_READING_M if self.beyond_max_range == "clear" else self.max_range
+
     def __post_init__(self):
         problems = []
         if not (0.01 <= self.resolution <= 10):
@@ -52,6 +65,9 @@ class MapperConfig:
             problems.append("hit_increment and miss_decrement must be in 1..100")
         if not (0 <= self.hit_depth <= 10):
             problems.append(f"hit_depth {self.hit_depth} m outside 0..10")
+        if self.beyond_max_range not in BEYOND_MAX_RANGE:
+            problems.append(f"beyond_max_range {self.beyond_max_range!r} is not one of "
+                            f"{list(BEYOND_MAX_RANGE)}")
         if self.traversal not in _TRAVERSALS:
             problems.append(f"traversal {self.traversal!r} is not one of {sorted(_TRAVERSALS)}")
         if not (1 <= self.threads <= 64):
@@ -154,7 +170,7 @@ class Mapper:
         rot = pose.rotation()
         origin = pose.position
         lo_m, hi_m, valid = raycast.endpoint_bounds(depth, scale, sx, sy, rot, origin,
-                                                    cfg.min_range, cfg.max_range)
+                                                    cfg.min_range, cfg.max_range, cfg.far_limit)
         if valid == 0:
             return IntegrationStats(0, depth.size, 0, 0, 0, 0, False, time.perf_counter() - t0)
         grid = self.grid
@@ -182,7 +198,7 @@ class Mapper:
             origin_c = origin * inv_res - grid.offset + 0.5
             shape = np.array(grid.shape, dtype=np.int64)
             raycast.trace_rows(depth, scale, sx, sy, 0, depth.shape[0], rot, origin_c, inv_res,
-                               cfg.min_range, cfg.max_range, cfg.hit_depth, shape, grid.flat,
+                               cfg.min_range, cfg.max_range, cfg.far_limit, cfg.hit_depth, shape, grid.flat,
                                raycast.MODE_PER_RAY, _TRAVERSALS[cfg.traversal], inc, dec, counts[0])
             updated = int(counts[0, raycast.COUNT_VISITS])
             hits = int(counts[0, raycast.COUNT_RAYS] - counts[0, raycast.COUNT_TRUNCATED])
@@ -211,7 +227,7 @@ class Mapper:
 
         def trace(k):
             raycast.trace_rows(depth, scale, sx, sy, rows[k], rows[k + 1], rot, origin_c, inv_res,
-                               cfg.min_range, cfg.max_range, cfg.hit_depth, shape,
+                               cfg.min_range, cfg.max_range, cfg.far_limit, cfg.hit_depth, shape,
                                marks[k], raycast.MODE_MARK, _TRAVERSALS[cfg.traversal], 0, 0, counts[k])
 
         xs = np.linspace(0, int(box_shape[0]), n_threads + 1).astype(np.int64)

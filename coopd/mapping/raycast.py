@@ -1,7 +1,10 @@
 """numba kernels that turn one depth frame into cell updates (thesis Algorithm 1, notes §3).
 
 Every valid pixel is a ray from the sensor origin to its measured point, walked cell by cell by
-one of two traversals:
+one of two traversals. A ray longer than max range is cut there and ends in a miss, not a hit
+(OctoMap's maxrange); a pixel whose depth reads beyond max range (up to `far_limit`) is such a
+ray, so far readings clear the free space in front of them. Depth 0, NaN, negative or beyond
+`far_limit` is no reading at all and touches nothing.
 
 - Bresenham (default): the thesis' 3D Bresenham line between the centres of the origin cell and
   the end cell; one cell per step of the major axis (26-connected).
@@ -46,9 +49,9 @@ N_COUNTS = 4
 
 
 @nb.njit(**_JIT)
-def endpoint_bounds(depth, scale, slope_x, slope_y, rot, origin, min_range, max_range):
-    """Map-frame box (lo, hi, metres) holding the origin and every valid ray's end point, and
-    the number of valid rays."""
+def endpoint_bounds(depth, scale, slope_x, slope_y, rot, origin, min_range, max_range, far_limit):
+    """Map-frame box (lo, hi, metres) holding the origin and every valid ray's end point (cut at
+    max range), and the number of valid rays (depth in min_range..far_limit)."""
     lo = origin.copy()
     hi = origin.copy()
     valid = 0
@@ -57,7 +60,7 @@ def endpoint_bounds(depth, scale, slope_x, slope_y, rot, origin, min_range, max_
         sy = slope_y[v]
         for u in range(w):
             z = depth[v, u] * scale
-            if not (z >= min_range and z <= max_range):
+            if not (z >= min_range and z <= far_limit):
                 continue
             valid += 1
             x = slope_x[u] * z
@@ -179,16 +182,18 @@ def _walk_bresenham(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode
 
 @nb.njit(**_JIT)
 def trace_rows(depth, scale, slope_x, slope_y, row_lo, row_hi, rot, origin_c, inv_res,
-               min_range, max_range, hit_depth, shape, target, mode, traversal, inc, dec, counts):
+               min_range, max_range, far_limit, hit_depth, shape, target, mode, traversal, inc, dec,
+               counts):
     """Walk the rays of image rows [row_lo, row_hi) into `target` (a flat box of `shape` cells;
-    origin_c is the sensor origin in that box's continuous cell coordinates)."""
+    origin_c is the sensor origin in that box's continuous cell coordinates). Depths in
+    min_range..far_limit are rays; those longer than max_range are cut there, all misses."""
     w = depth.shape[1]
     ox, oy, oz = origin_c[0], origin_c[1], origin_c[2]
     for v in range(row_lo, row_hi):
         sy = slope_y[v]
         for u in range(w):
             z = depth[v, u] * scale
-            if not (z >= min_range and z <= max_range):
+            if not (z >= min_range and z <= far_limit):
                 counts[COUNT_INVALID] += 1
                 continue
             x = slope_x[u] * z

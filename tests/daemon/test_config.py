@@ -77,6 +77,7 @@ BAD = [
     ("[mapping]\nresolution = 50.0", "mapping.resolution", "resolution"),
     ("[mapping]\nmax_range = 0.1", "mapping", "range"),
     ("[mapping]\ntraversal = 'dda'", "mapping.traversal", "traversal"),
+    ("[mapping]\nbeyond_max_range = 'ignore'", "mapping.beyond_max_range", "one of"),
     ("[mapping]\nthreads = '2'", "mapping.threads", "integer"),
     ("[mapping.growth]\nmargin = -1", "mapping.growth", "growth"),
     ("[sharing]\nport = 70000", "sharing.port", "outside"),

@@ -95,15 +95,56 @@ def test_max_range_truncates_without_hits():
     scene = BoxScene(np.array([[[8.0, -30.0, -30.0], [8.2, 30.0, 30.0]]]))
     pose = camera_pose([0.0, 0.0, 0.0], yaw=0.0)
     depth = render_depth(scene, INTR, pose)
-    mapper = Mapper(MapperConfig(max_range=5.0, gap_fill=False))
+    mapper = Mapper(MapperConfig(max_range=5.0, gap_fill=False, beyond_max_range="drop"))
     stats = mapper.integrate(depth, INTR, pose)
     assert stats.invalid_pixels == 160 * 120 and stats.rays == 0      # z = 8 m > max range
+    assert mapper.grid.counts().known == 0
     depth2 = np.full_like(depth, 4.5)                                  # corners longer than 5 m
     stats2 = mapper.integrate(depth2, INTR, pose)
     assert stats2.truncated_rays > 0 and 0 < stats2.hits < stats2.cells_updated
     assert mapper.grid.counts().occupied > 0
     far = mapper.grid.values_at([[0.0, 0.0, 4.5]])   # optical z is forward = map x for yaw 0
     assert far[0] == UNKNOWN
+
+
+@pytest.mark.parametrize("z16", [False, True])
+def test_readings_beyond_max_range_clear_up_to_it_and_mark_no_hit(z16):
+    """A wall 8 m away seen with max range 5 m (OctoMap's maxrange): every pixel is a ray cut at
+    5 m; the cells along it up to 5 m are free, none is occupied, nothing beyond 5 m is touched."""
+    from tests.synthetic_scenes import BoxScene
+    scene = BoxScene(np.array([[[8.0, -30.0, -30.0], [8.2, 30.0, 30.0]]]))
+    pose = camera_pose([0.0, 0.0, 0.0], yaw=0.0)
+    depth = render_depth(scene, INTR, pose)
+    intr = INTR
+    if z16:
+        depth = np.round(depth / 0.001).astype(np.uint16)
+        intr = Intrinsics.from_fov(160, 120, 87.0, depth_scale=0.001)
+    mapper = Mapper(MapperConfig(max_range=5.0, gap_fill=False))
+    stats = mapper.integrate(depth, intr, pose)
+    assert stats.rays == 160 * 120 and stats.truncated_rays == 160 * 120 and stats.invalid_pixels == 0
+    assert stats.hits == 0 and stats.cells_updated > 0
+    g = mapper.grid
+    assert g.counts().occupied == 0
+    # Along the optical axis (map +x for yaw 0): cells 1..49 free (50 - 15), nothing past 5 m.
+    assert np.all(g.values_at_keys([[k, 0, 0] for k in range(1, 50)]) == 35)
+    assert np.all(g.values_at_keys([[k, 0, 0] for k in range(51, 60)]) == UNKNOWN)
+    known = np.argwhere(g.cells >= 0) + g.offset
+    assert np.max(np.linalg.norm(known * g.resolution, axis=1)) <= 5.0 + g.resolution
+
+
+@pytest.mark.parametrize("fill", [0.0, np.nan, np.inf, -1.0, 2000.0])
+def test_no_reading_is_not_a_far_reading(fill):
+    """Depth 0 (no return), NaN, inf, negative or beyond any camera's reach clears nothing, even
+    where a beyond-max-range reading would."""
+    mapper = Mapper(MapperConfig(max_range=5.0))
+    depth = np.full((120, 160), 8.0, np.float32)
+    depth[:, :80] = fill
+    stats = mapper.integrate(depth, INTR, GOOD_POSE)
+    assert stats.invalid_pixels == 120 * 80 and stats.rays == 120 * 80
+    g = mapper.grid
+    known = np.argwhere(g.cells >= 0) + g.offset
+    # Optical x is right = map -y: the left half of the image (u < 80) looks to map +y.
+    assert len(known) and np.all(known[:, 1] <= 1)
 
 
 def test_z16_and_float_frames_agree(scene):
@@ -213,6 +254,8 @@ def test_far_away_pose_cannot_allocate_without_bound():
 
 
 def test_config_validation_names_the_problem():
+    with pytest.raises(ValueError, match="beyond_max_range"):
+        MapperConfig(beyond_max_range="ignore")
     with pytest.raises(ValueError, match="traversal"):
         MapperConfig(traversal="magic")
     with pytest.raises(ValueError, match="range"):
