@@ -58,6 +58,10 @@ def main(argv=None) -> int:
         failure, extra, error = FAILED, {"daemon_code": e.code}, e
     except (OSError, ValueError) as e:
         failure, extra, error = FAILED, {}, e
+    except ImportError as e:  # an optional dependency the install left out (e.g. Pillow for PNG)
+        if not getattr(e, "extra", None):
+            raise
+        failure, extra, error = FAILED, {"missing_extra": e.extra}, e
     message = describe(error)
     if wants_json:
         print(json.dumps(error_object(message, failure, **extra)))

@@ -79,6 +79,9 @@ def slice_classes(grid: OccupancyGrid, z_m: float, threshold: int = OCCUPIED_THR
 class PillowMissing(ImportError):
     """PNG export without Pillow, which the drone install leaves out (it comes with the tools extra)."""
 
+    extra = "tools"
+    """The coopd extra that brings what is missing (command-line tools report it, no traceback)."""
+
 
 def _pillow():
     """PIL's Image, ImageDraw and PngImagePlugin, imported on first use: maps load, convert to the

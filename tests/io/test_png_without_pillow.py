@@ -30,6 +30,18 @@ def test_png_export_names_the_tools_extra(monkeypatch, tmp_path, export):
     assert not out.exists()
 
 
+def test_coopctl_says_which_extra_brings_pillow_without_a_traceback(monkeypatch, tmp_path, capsys):
+    from coopd.cli.coopctl import main as coopctl
+    from coopd.io import save_cmap
+    from coopd.sharing.wire import MapMeta
+
+    save_cmap(tmp_path / "m.cmap", small_map(), MapMeta(1, 1))
+    monkeypatch.setitem(sys.modules, "PIL", None)
+    assert coopctl(["map", "convert", str(tmp_path / "m.cmap"), "--to", "png", "--json"]) == 1
+    out = capsys.readouterr()
+    assert '"missing_extra": "tools"' in out.out and "coopd[tools]" in out.out and "Traceback" not in out.err
+
+
 def test_coopd_io_imports_and_exports_ply_without_pillow(tmp_path):
     code = ("import sys; sys.modules['PIL'] = None\n"
             "import numpy as np\n"
