@@ -355,7 +355,8 @@ class Daemon:
         source = self.config.camera.source
         if source.startswith("realsense"):
             serial = source.partition(":")[2] or None
-            return RealSenseSource(self._local_to_fc, self.slot, self.config.camera.realsense, serial=serial)
+            return RealSenseSource(self.link.fc_time_at, self.slot, self.config.camera.realsense,
+                                   serial=serial)
         address = source[len("socket:") :] if source.startswith("socket:") else source
         cfg = SocketSourceConfig(
             address=address,
@@ -363,11 +364,7 @@ class Daemon:
             stall_timeout_s=self.config.camera.stall_timeout_s,
         )
         # FC reboots reset its time reference; host-monotonic stamps go through the link's clock fit
-        return SocketDepthSource(cfg, self.slot, fc=self.link, host_to_fc=self._local_to_fc)
-
-    def _local_to_fc(self, local_s: float) -> float | None:
-        est = self.link.clock.estimate()
-        return None if est is None else est.fc_time(local_s)
+        return SocketDepthSource(cfg, self.slot, fc=self.link, host_to_fc=self.link.fc_time_at)
 
     def _make_mapper(self) -> Mapper:
         """A Mapper on the newest valid local checkpoint (and its map frame), or on an empty grid."""

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
         from ..camera import SocketDepthSource, SocketSourceConfig
         from ..mapping.association import FrameAssociator
 
-        source = SocketDepthSource(SocketSourceConfig(a.camera))
+        source = SocketDepthSource(SocketSourceConfig(a.camera), fc=link, host_to_fc=link.fc_time_at)
         assoc = FrameAssociator(link)
         source.start()
     link.start()

@@ -450,10 +450,15 @@ class VehicleLink:
         """Body pose in the map frame at FC time t_fc (raises PoseLookupError)."""
         return self.poses.at(t_fc)
 
+    def fc_time_at(self, local_s: float) -> float | None:
+        """FC time (seconds since FC boot) at our monotonic time local_s, by the clock fit; None before
+        there is one. Converts host-stamped camera frames."""
+        est = self.clock.estimate()
+        return None if est is None else est.fc_time(local_s)
+
     def fc_time_now(self) -> float | None:
         """Our best estimate of the FC clock now (seconds since FC boot), or None."""
-        est = self.clock.estimate()
-        return None if est is None else est.fc_time(time.monotonic())
+        return self.fc_time_at(time.monotonic())
 
     def fc_time_latest(self) -> float | None:
         """An FC time that has surely passed: the later of the clock fit's prediction for now and the
