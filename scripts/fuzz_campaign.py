@@ -152,7 +152,7 @@ def main(argv=None) -> int:
             return replay(names[0], args.replay, workdir)
         seed = args.seed if args.seed is not None else time.time_ns() % 2**32
         summary_path = args.out / "summary.json"
-        summary = json.loads(summary_path.read_text()) if summary_path.exists() else {"targets": {}}
+        summary = {"targets": {}}
         for name in names:
             engine = args.engine if name in ATHERIS_TARGETS else "mutation"
             if engine == "atheris":
@@ -163,10 +163,12 @@ def main(argv=None) -> int:
                 entry = campaign(name, args.seconds, seed, args.out, workdir, args.cases)
             finished = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             entry.update(seed=seed, engine=engine, finished=finished)
-            summary["targets"][name] = entry
             found = len(entry["findings"])
             print(f"{name}: {entry['cases']} cases in {entry['seconds']} s, {found} findings", flush=True)
             args.out.mkdir(parents=True, exist_ok=True)
+            # re-read: a campaign running beside this one may have written its own target meanwhile
+            summary = json.loads(summary_path.read_text()) if summary_path.exists() else {"targets": {}}
+            summary["targets"][name] = entry
             summary["total_cases"] = sum(t["cases"] for t in summary["targets"].values())
             summary["total_findings"] = sum(len(t["findings"]) for t in summary["targets"].values())
             summary_path.write_text(json.dumps(summary, indent=2) + "\n")

@@ -878,11 +878,24 @@ class CameraSocketTarget(Target):
         with conn:
             send_and_drain(conn, data, SOCKET_CASE_S)
         if not wait_for(lambda: ended() > before, SOCKET_CASE_S):
-            raise Finding("camera_socket: the source did not notice the driver closing the connection")
+            raise Finding("camera_socket: the source did not notice the driver closing the connection\n"
+                          + self.where_is_the_source())
         if counters["internal_errors"]:
             raise Finding("camera_socket: a hostile driver caused an internal error in the source")
         if self.source._thread is None or not self.source._thread.is_alive():
             raise Finding("camera_socket: the camera thread died")
+
+    def where_is_the_source(self) -> str:
+        """The camera thread's stack, counters and the machine's load: tells a hang from a starved run."""
+        import os
+        import sys
+        import traceback
+
+        thread = self.source._thread
+        frame = sys._current_frames().get(thread.ident) if thread is not None else None
+        stack = "".join(traceback.format_stack(frame)) if frame is not None else "(no camera thread)\n"
+        return (f"load average {os.getloadavg()}; counters {dict(self.source.counters)}\n"
+                f"camera thread stack:\n{stack}")
 
     def close(self) -> None:
         self.source.stop()
