@@ -6,6 +6,7 @@ import logging
 import re
 import socket
 
+import pytest
 from sim_helpers import wait_until
 
 from coopd.vehicle.link import MISMATCH_LOG_AFTER_S, LinkConfig, VehicleLink
@@ -53,41 +54,39 @@ def test_system_id_mismatch_is_shown_within_5_s_and_logged_once(caplog):
         fc.close()
 
 
-def test_a_second_vehicle_on_a_shared_link_is_no_mismatch():
-    """Through a router or radio several autopilots share a link: while ours talks, others are fine."""
+@pytest.fixture
+def shared_link():
+    """Our link (vehicle 1) started on a UDP port that two autopilots send to: ours (1) and another (2)."""
     port = free_port()
     link = udp_link(port, vehicle_id=1)
     ours = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=1)
     other = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=2)
     link.start()
     try:
-        assert ours.run_until(lambda: link.state == "ok", seconds=5.0, send=lambda _: other.heartbeat())
-        ours.run_until(lambda: False, seconds=MISMATCH_LOG_AFTER_S + 0.5, send=lambda _: other.heartbeat())
-        assert link.counters["rx_foreign"] > 0 and link.status()["reason"] is None
+        yield link, ours, other
     finally:
         link.stop()
         ours.close()
         other.close()
 
 
-def test_another_autopilot_after_ours_went_silent_is_no_mismatch():
+def test_a_second_vehicle_on_a_shared_link_is_no_mismatch(shared_link):
+    """Through a router or radio several autopilots share a link: while ours talks, others are fine."""
+    link, ours, other = shared_link
+    assert ours.run_until(lambda: link.state == "ok", seconds=5.0, send=lambda _: other.heartbeat())
+    ours.run_until(lambda: False, seconds=MISMATCH_LOG_AFTER_S + 0.5, send=lambda _: other.heartbeat())
+    assert link.counters["rx_foreign"] > 0 and link.status()["reason"] is None
+
+
+def test_another_autopilot_after_ours_went_silent_is_no_mismatch(shared_link):
     """Ours spoke, so vehicle.id is right: when it goes silent on a shared link, the link is lost,
     not mismatched."""
-    port = free_port()
-    link = udp_link(port, vehicle_id=1)
-    ours = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=1)
-    other = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=2)
-    link.start()
-    try:
-        assert ours.run_until(lambda: link.state == "ok", seconds=5.0)
-        lost = lambda: link.state == "lost"  # noqa: E731
-        assert other.run_until(lost, seconds=5.0)
-        other.run_until(lambda: False, seconds=MISMATCH_LOG_AFTER_S + 0.5)
-        assert link.status()["reason"] == "no_traffic" and link.counters["rx_foreign"] > 0
-    finally:
-        link.stop()
-        ours.close()
-        other.close()
+    link, ours, other = shared_link
+    assert ours.run_until(lambda: link.state == "ok", seconds=5.0)
+    lost = lambda: link.state == "lost"  # noqa: E731
+    assert other.run_until(lost, seconds=5.0)
+    other.run_until(lambda: False, seconds=MISMATCH_LOG_AFTER_S + 0.5)
+    assert link.status()["reason"] == "no_traffic" and link.counters["rx_foreign"] > 0
 
 
 def test_other_reasons():
