@@ -2,7 +2,6 @@
 
 import numba as nb
 import numpy as np
-from scipy import ndimage
 
 from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
@@ -113,13 +112,69 @@ def fast3d_mask(img: np.ndarray, known: np.ndarray, mask: np.ndarray, n: int, th
     return out
 
 
+WINDOW_CHUNK = 256
+"""Columns filtered together by _window_max_middle: its buffers stay in the CPU cache."""
+
+
+@nb.njit(**_JIT)
+def _window_max_middle(src, radius, dst):
+    """dst[p, i, m] = max of src[p, i - radius .. i + radius, m], reading 0 outside; src, dst C-contiguous
+    (P, n, M). van Herk / Gil-Werman (block prefix and suffix maxima: three passes whatever the radius),
+    on up to WINDOW_CHUNK columns at once so that the inner loops read contiguous memory."""
+    big_p, n, big_m = src.shape
+    w = 2 * radius + 1
+    size = n + 2 * radius
+    chunk = min(WINDOW_CHUNK, big_m)
+    padded = np.zeros((size, chunk), src.dtype)  # rows < radius and >= radius + n stay 0: the outside
+    g = np.empty((size, chunk), src.dtype)
+    h = np.empty((size, chunk), src.dtype)
+    for p in range(big_p):
+        for m0 in range(0, big_m, chunk):
+            cols = min(chunk, big_m - m0)
+            for k in range(n):
+                for c in range(cols):
+                    padded[radius + k, c] = src[p, k, m0 + c]
+            for i in range(size):
+                if i % w == 0:
+                    for c in range(cols):
+                        g[i, c] = padded[i, c]
+                else:
+                    for c in range(cols):
+                        g[i, c] = max(g[i - 1, c], padded[i, c])
+            for i in range(size - 1, -1, -1):
+                if i == size - 1 or (i + 1) % w == 0:
+                    for c in range(cols):
+                        h[i, c] = padded[i, c]
+                else:
+                    for c in range(cols):
+                        h[i, c] = max(h[i + 1, c], padded[i, c])
+            for i in range(n):  # the window rows i .. i + w - 1 of the padded line: a block's tail and head
+                for c in range(cols):
+                    dst[p, i, m0 + c] = max(h[i, c], g[i + w - 1, c])
+
+
+def window_max(img: np.ndarray, reach: int) -> np.ndarray:
+    """Max of img over the cube of half-size reach around each cell, reading 0 outside the image
+    (scipy.ndimage.maximum_filter with mode "constant", without scipy), one axis at a time; the last
+    axis through a transposed copy, so that every pass runs over many contiguous columns."""
+    src = np.ascontiguousarray(img)
+    for axis in (0, 1):
+        shape = src.shape
+        middle = (int(np.prod(shape[:axis])), shape[axis], int(np.prod(shape[axis + 1:])))
+        dst = np.empty_like(src)
+        _window_max_middle(src.reshape(middle), reach, dst.reshape(middle))
+        src = dst
+    last = np.ascontiguousarray(src.reshape(-1, src.shape[2]).T)  # (n, M): the last axis in the middle
+    dst = np.empty_like(last)
+    _window_max_middle(last[None], reach, dst[None])
+    return np.ascontiguousarray(dst.T).reshape(src.shape)
+
+
 def contrast_candidates(img: np.ndarray, known: np.ndarray, reach: int, th: float) -> np.ndarray:
     """Known cells whose cube of half-size reach (outside reads 0) spans more than th in intensity: no
     other cell can pass rFAST, whose ring and centre means all lie inside that cube. Skips the flat
     free space that is most of a map before the ring is read."""
-    size = 2 * reach + 1
-    spread = ndimage.maximum_filter(img, size=size, mode="constant") - ndimage.minimum_filter(
-        img, size=size, mode="constant")
+    spread = window_max(img, reach) + window_max(-img, reach)  # max - min: min(x) = -max(-x), 0 = -0
     return known & (spread > th)
 
 

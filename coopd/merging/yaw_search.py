@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
-from scipy import fft as sfft
 
 from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
@@ -117,6 +116,20 @@ def vertical_offset(ha: np.ndarray, za: float, hb: np.ndarray, zb: float, resolu
     return za - zb + lag * resolution
 
 
+def fast_fft_length(n: int) -> int:
+    """The smallest 5-smooth length (2^a 3^b 5^c) >= n: the sizes FFTs are fastest at."""
+    best = 1 << max(0, (n - 1).bit_length())  # a power of two always qualifies
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            p = p35 << max(0, (-(-n // p35) - 1).bit_length())  # times the power of two reaching n
+            best = min(best, p)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
 def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid,
            params: MergeParams) -> list[tuple[float, np.ndarray]]:
     """(correlation score, 4x4 b -> a) for the best peaks over all yaws, strongest first."""
@@ -141,17 +154,17 @@ def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid,
     b = TopView(b.walls - centre, b.wall_weight, b.free - centre)
     b_rad = float(np.max(np.linalg.norm(np.concatenate([b.walls, b.free]), axis=1)))
     b_ext = int(np.ceil(2 * b_rad / cell)) + 2
-    n = tuple(sfft.next_fast_len(int(e + b_ext), real=True) for e in a_ext)
+    n = tuple(fast_fft_length(int(e + b_ext)) for e in a_ext)
     wa_img, fa_img = _images(a, 0.0, a_org, cell, n)
-    wa, fa = sfft.rfft2(wa_img), sfft.rfft2(fa_img)
+    wa, fa = np.fft.rfft2(wa_img), np.fft.rfft2(fa_img)
     lam = params.search_free_penalty
     b_org = np.array([-b_rad, -b_rad])
     found = []
     for yaw in np.radians(np.arange(0.0, 360.0, params.search_yaw_step_deg)):
         r = rotation_z(yaw)[:2, :2]
         wb_img, fb_img = _images(b, yaw, b_org, cell, n)
-        wb, fb = np.conj(sfft.rfft2(wb_img)), np.conj(sfft.rfft2(fb_img))
-        score = sfft.irfft2(wa * wb - lam * (wa * fb + fa * wb), s=n)
+        wb, fb = np.conj(np.fft.rfft2(wb_img)), np.conj(np.fft.rfft2(fb_img))
+        score = np.fft.irfft2(wa * wb - lam * (wa * fb + fa * wb), s=n)
         for _ in range(params.search_peaks_per_yaw):
             k = int(np.argmax(score))
             i, j = np.unravel_index(k, n)

@@ -1,6 +1,7 @@
 import numpy as np
+import pytest
 
-from coopd.merging.fast3d import circle_mask, fast3d
+from coopd.merging.fast3d import circle_mask, fast3d, window_max
 from coopd.merging.keypoint_filter import filter_keypoints, score_v
 from coopd.merging.params import MergeParams
 from coopd.merging.preprocess import intensity
@@ -54,3 +55,18 @@ def test_filter_keeps_one_local_maximum_of_score_v():
     assert sc[0] == full.max()
     d = np.linalg.norm(fk[:, None, :] - fk[None, :, :], axis=2) + np.eye(len(fk)) * 99
     assert d.min() > 3.0
+
+
+@pytest.mark.parametrize("shape, reach", [((40, 30, 12), 6), ((5, 7, 3), 4), ((3, 300, 2), 1), ((1, 1, 1), 2),
+                                          ((9, 4, 600), 0)])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_window_max_is_scipys_constant_mode_maximum_filter(shape, reach, dtype):
+    """The contrast prefilter's max and min over a cube (outside reads 0) equal scipy.ndimage's,
+    including windows wider than the image and more columns than one chunk."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(sum(shape) + reach)
+    img = np.where(rng.random(shape) < 0.6, rng.random(shape) * 255, 0).astype(dtype)
+    size = 2 * reach + 1
+    assert np.array_equal(window_max(img, reach), ndimage.maximum_filter(img, size=size, mode="constant"))
+    assert np.array_equal(-window_max(-img, reach), ndimage.minimum_filter(img, size=size, mode="constant"))

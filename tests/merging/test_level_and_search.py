@@ -29,3 +29,15 @@ def test_yaw_search_puts_the_true_alignment_first(near_pair):
                                                     - np.arctan2(truth[1, 0], truth[0, 0]))))))
     assert yaw_err < 3.0
     assert np.linalg.norm(best[:2, 3] - truth[:2, 3]) < 0.8
+
+
+def test_fft_lengths_are_the_smallest_5_smooth_lengths_not_below_n():
+    def smooth(m):
+        for p in (2, 3, 5):
+            while m % p == 0:
+                m //= p
+        return m == 1
+
+    for n in list(range(1, 400)) + [1021, 4097, 65537]:
+        got = yaw_search.fast_fft_length(n)
+        assert got >= n and smooth(got) and not any(smooth(m) for m in range(n, got)), n
