@@ -18,6 +18,7 @@ Goal: every drone, own and global map: surface precision and recall >= 0.95; glo
 the lowest of its members' own maps by more than 0.02; coopd >= OctoMap on both (replay).
 Usage: scripts/benchmarks/accuracy.py [--worlds a,b] [--drones 3] [--seed 1] [--speed 2] [--frame-step 3]
        [--autopilot px4|ardupilot] [--network auto|netns|loopback] [--port-base N] [--tabulate]
+       [--no-replay]
 (--tabulate: no flights, score and tabulate the runs already in out/bench/accuracy/WORLD/)
 --autopilot ardupilot flies ArduCopter-personality drones (coopd builds its poses from
 LOCAL_POSITION_NED + ATTITUDE_QUATERNION) and writes out/bench/accuracy-ardupilot.{json,md} and
@@ -208,8 +209,10 @@ def truth_samples(frames, poses, cam: CameraConfig, shapes, max_range: float, re
 
 
 # ------------------------------------------------------------------------------- scoring
-def score_world(world_name: str, seed: int, run_out: Path, report: dict, frame_step: int) -> list[dict]:
-    """Every drone of one run: surface metric of its own and global map, the replay beside it."""
+def score_world(world_name: str, seed: int, run_out: Path, report: dict, frame_step: int,
+                replay: bool = True) -> list[dict]:
+    """Every drone of one run: surface metric of its own and global map, the replay beside it (unless
+    replay is False: the daemons' maps only)."""
     world = build_world(world_name, seed)
     config = MapperConfig()
     strict = {d["drone"]: d for d in report.get("accuracy", [])}
@@ -236,7 +239,7 @@ def score_world(world_name: str, seed: int, run_out: Path, report: dict, frame_s
             row[which]["free"] = acc.free_share(grid, f["world_from_map"], f["free"])
             row[which]["strict"] = {k: (strict.get(vid) or {}).get(which, {}).get(k)
                                     for k in ("precision", "recall", "precision_tol1", "recall_tol1")}
-        for name, grid, frame in (
+        for name, grid, frame in () if not replay else (
                 ("coopd", replay_coopd(f["frames"], f["poses"], f["camera"], "clear"), np.eye(4)),
                 ("coopd_drop", replay_coopd(f["frames"], f["poses"], f["camera"], "drop"), np.eye(4)),
                 ("octomap", *replay_octomap(f["frames"], f["poses"], f["camera"], config))):
@@ -271,9 +274,9 @@ def goal_checks(r: dict, member_own: list) -> dict:
         "global_vs_members": bool(g and members) and all(
             g[k] >= min(m[k] for m in members) - GOAL["global_vs_members"]
             for k in ("surface_precision", "surface_recall")),
+    } | ({} if "coopd" not in r else {  # without the replay there is nothing to compare with OctoMap
         "coopd_vs_octomap": all(r["coopd"][k] >= r["octomap"][k]
-                                for k in ("surface_precision", "surface_recall")),
-    }
+                                for k in ("surface_precision", "surface_recall"))})
 
 
 # ------------------------------------------------------------------------------- tables
@@ -301,10 +304,13 @@ def markdown(rows: list[dict]) -> str:
                      f"| {pr(r.get('global'))} | {dist(r.get('global'))} "
                      f"| {fmt(s.get('precision'), '.3f')} / {fmt(s.get('recall'), '.3f')} "
                      f"| {yes[gl['own']]} / {yes[gl['global']]} / {yes[gl['global_vs_members']]} |")
+    replayed = [r for r in rows if "coopd" in r]
+    if not replayed:
+        return "\n".join(lines) + "\n"
     lines += ["", "| world | drone | frames | coopd P / R | coopd mean / p95 m | OctoMap P / R "
               "| OctoMap mean / p95 m | coopd ≥ OctoMap | free: coopd clear / drop / OctoMap |",
               "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
+    for r in replayed:
         free = " / ".join(f"{r[k]['free']:.3f}" for k in ("coopd", "coopd_drop", "octomap"))
         lines.append(f"| {r['world']} | {r['drone']} | {r['replay_frames']} | {pr(r['coopd'])} "
                      f"| {dist(r['coopd'])} | {pr(r['octomap'])} | {dist(r['octomap'])} "
@@ -332,6 +338,8 @@ def main() -> int:
                         "(two netns swarms share the FC cables' root-side addresses)")
     p.add_argument("--port-base", type=int, default=None, help="the demo's --port-base")
     p.add_argument("--tabulate", action="store_true", help="no flights: score the runs already there")
+    p.add_argument("--no-replay", action="store_true",
+                   help="score the daemons' maps only, no coopd/OctoMap replay (e.g. to compare autopilots)")
     a = p.parse_args()
     name = "accuracy" if a.autopilot == "px4" else f"accuracy-{a.autopilot}"
     worlds = [w for w in a.worlds.split(",") if w]
@@ -347,7 +355,7 @@ def main() -> int:
         report = run_demo(world, a, run_out)
         if report is None:
             continue
-        world_rows = score_world(world, a.seed, run_out, report, a.frame_step)
+        world_rows = score_world(world, a.seed, run_out, report, a.frame_step, replay=not a.no_replay)
         print(markdown(world_rows), flush=True)
         rows += world_rows
         (a.out / f"{name}.json").write_text(json.dumps(

@@ -83,3 +83,18 @@ def test_replay_of_a_short_flight_scores_both_mappers():
     octo = acc.surface_accuracy(*bench.replay_octomap(frames, poses, cam, config), world.shapes, seen)
     for r in (coopd, octo):
         assert r["surface_precision"] > 0.9 and r["surface_recall"] > 0.9
+
+
+def test_without_the_replay_the_goal_and_tables_leave_out_the_octomap_comparison():
+    """--no-replay (autopilot comparisons): the daemons' maps are judged alone, and nothing claims
+    coopd beat or lost to OctoMap."""
+    good = {"surface_precision": 0.97, "surface_recall": 0.96, "surface_mean_m": 0.03, "surface_p95_m": 0.06}
+    low = dict(good, surface_recall=0.90)
+    row = {"world": "maze", "drone": 1, "members": [1, 2], "local": good, "global": low}
+    goal = bench.goal_checks(row, [good, good])
+    assert goal == {"own": True, "global": False, "global_vs_members": False}
+    row["goal"] = goal
+    table = bench.markdown([row])
+    assert "| maze | 1 |" in table and "OctoMap" not in table
+    replayed = dict(row, coopd=good, octomap=low)
+    assert bench.goal_checks(replayed, [good, good])["coopd_vs_octomap"] is True
