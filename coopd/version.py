@@ -5,7 +5,7 @@ checkout (PYTHONPATH, or an editable install of another checkout) the metadata m
 different tree, so a pyproject.toml beside the imported package wins and is named in the answer.
 """
 
-import importlib.metadata
+import argparse
 import tomllib
 from pathlib import Path
 
@@ -27,6 +27,8 @@ def source_tree_version(package_dir: Path) -> str | None:
 
 def package_version(package_dir: Path = PACKAGE_DIR) -> str:
     """The version of the coopd that is running: source checkout, installed distribution, or unknown."""
+    import importlib.metadata  # here, not at load: it costs every command's start, --version alone needs it
+
     found = source_tree_version(package_dir)
     if found is not None:
         return found
@@ -36,7 +38,18 @@ def package_version(package_dir: Path = PACKAGE_DIR) -> str:
         return "unknown (not installed, no pyproject.toml beside the package)"
 
 
+class _VersionAction(argparse.Action):
+    """argparse's "version" action, with the version looked up only when --version is given."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default,
+                         help=help or "show the version and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{parser.prog} {package_version()}")
+        parser.exit()
+
+
 def add_version_option(parser) -> None:
     """`--version` on an argparse parser: prints `PROG VERSION` and exits 0."""
-    text = package_version().replace("%", "%%")  # argparse formats the string
-    parser.add_argument("--version", action="version", version=f"%(prog)s {text}")
+    parser.add_argument("--version", action=_VersionAction)
