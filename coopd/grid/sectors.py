@@ -16,6 +16,7 @@ out. A sector then reports
   max range + 1 cm when every column in it up to max range is known free.
 """
 
+import functools
 import math
 
 import numba as nb
@@ -84,65 +85,90 @@ def overlay(fresh: np.ndarray, older: np.ndarray) -> np.ndarray:
     return fresh
 
 
+@functools.lru_cache(maxsize=8)
+def ring_order(radius_cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """Column offsets (dx, dy) from the vehicle's cell within radius_cells, nearest first, and a lower
+    bound (in cells) of the nearest-point distance of each from a vehicle anywhere in its cell."""
+    r = np.arange(-radius_cells, radius_cells + 1)
+    dx, dy = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
+    centre = np.sqrt(dx * dx + dy * dy)
+    keep = centre <= radius_cells
+    order = np.argsort(centre[keep], kind="stable")
+    offsets = np.stack([dx[keep], dy[keep]], axis=1)[order].astype(np.int64)
+    return offsets, np.maximum(centre[keep][order] - math.sqrt(2.0), 0.0)
+
+
 @nb.njit(**_JIT)
 def sector_distances(cells, key_x0, key_y0, resolution, px, py, yaw, min_distance, max_distance,
-                     threshold):
+                     threshold, offsets, bounds):
     """OBSTACLE_DISTANCE distances (uint16 cm, 72 sectors, 0 forward, clockwise) of a band window.
 
     cells: (nx, ny, nz) int8, the band's layers of the columns keyed key_x0.., key_y0..; (px, py)
     the vehicle in the map frame (ENU, metres), yaw its heading (body x from east, counter-clockwise,
-    radians); distances in metres. See the module docstring for the rule."""
+    radians); distances in metres; offsets, bounds: ring_order() of at least max range + 3 cells.
+    Columns are visited nearest first and the visit ends once no farther column can be nearer than
+    what every sector already holds (the result is that of visiting all). See the module docstring."""
     nx, ny, nz = cells.shape
     occupied_d = np.full(SECTORS, np.inf)
     unknown_d = np.full(SECTORS, np.inf)
     half = 0.5 * resolution
     deg = 180.0 / np.pi
-    for ix in range(nx):
-        cx = (key_x0 + ix) * resolution
-        ex = max(abs(cx - px) - half, 0.0)
-        if ex > max_distance:
+    vx = int(np.floor(px / resolution + 0.5)) - key_x0
+    vy = int(np.floor(py / resolution + 0.5)) - key_y0
+    settled = np.inf  # the farthest first hit over the sectors, once every sector has one
+    for n in range(offsets.shape[0]):
+        reach = bounds[n] * resolution
+        if reach > max_distance or reach > settled:
+            break
+        ix = vx + offsets[n, 0]
+        iy = vy + offsets[n, 1]
+        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
             continue
-        for iy in range(ny):
-            cy = (key_y0 + iy) * resolution
-            ey = max(abs(cy - py) - half, 0.0)
-            d = np.sqrt(ex * ex + ey * ey)
-            if d < min_distance or d > max_distance:
-                continue
-            occupied = False
-            unknown = False
-            column = cells[ix, iy]
-            for iz in range(nz):
-                v = column[iz]
-                if v >= threshold:
-                    occupied = True
-                    break
-                if v < 0:
-                    unknown = True
-            if not (occupied or unknown):
-                continue
-            centre = np.arctan2(cy - py, cx - px)
-            lo = 0.0
-            hi = 0.0
-            for corner in range(4):
-                qx = cx + (half if corner & 1 else -half)
-                qy = cy + (half if corner & 2 else -half)
-                a = np.arctan2(qy - py, qx - px) - centre
-                if a > np.pi:
-                    a -= 2.0 * np.pi
-                elif a < -np.pi:
-                    a += 2.0 * np.pi
-                lo = min(lo, a)
-                hi = max(hi, a)
-            # clockwise bearing from forward: -(angle - yaw); the counter-clockwise extent flips
-            first = int(np.floor(((yaw - centre - hi) * deg + 0.5 * SECTOR_DEG) / SECTOR_DEG))
-            last = int(np.floor(((yaw - centre - lo) * deg + 0.5 * SECTOR_DEG) / SECTOR_DEG))
-            for s in range(first, last + 1):
-                k = s % SECTORS
-                if occupied:
-                    if d < occupied_d[k]:
-                        occupied_d[k] = d
-                elif d < unknown_d[k]:
-                    unknown_d[k] = d
+        cx = (key_x0 + ix) * resolution
+        cy = (key_y0 + iy) * resolution
+        ex = max(abs(cx - px) - half, 0.0)
+        ey = max(abs(cy - py) - half, 0.0)
+        d = np.sqrt(ex * ex + ey * ey)
+        if d < min_distance or d > max_distance:
+            continue
+        occupied = False
+        unknown = False
+        column = cells[ix, iy]
+        for iz in range(nz):
+            v = column[iz]
+            if v >= threshold:
+                occupied = True
+                break
+            if v < 0:
+                unknown = True
+        if not (occupied or unknown):
+            continue
+        centre = np.arctan2(cy - py, cx - px)
+        lo = 0.0
+        hi = 0.0
+        for corner in range(4):
+            qx = cx + (half if corner & 1 else -half)
+            qy = cy + (half if corner & 2 else -half)
+            a = np.arctan2(qy - py, qx - px) - centre
+            if a > np.pi:
+                a -= 2.0 * np.pi
+            elif a < -np.pi:
+                a += 2.0 * np.pi
+            lo = min(lo, a)
+            hi = max(hi, a)
+        # clockwise bearing from forward: -(angle - yaw); the counter-clockwise extent flips
+        first = int(np.floor(((yaw - centre - hi) * deg + 0.5 * SECTOR_DEG) / SECTOR_DEG))
+        last = int(np.floor(((yaw - centre - lo) * deg + 0.5 * SECTOR_DEG) / SECTOR_DEG))
+        for s in range(first, last + 1):
+            k = s % SECTORS
+            if occupied:
+                if d < occupied_d[k]:
+                    occupied_d[k] = d
+            elif d < unknown_d[k]:
+                unknown_d[k] = d
+        settled = 0.0
+        for k in range(SECTORS):
+            settled = max(settled, min(occupied_d[k], unknown_d[k]))
     out = np.empty(SECTORS, dtype=np.uint16)
     max_cm = int(np.floor(max_distance * 100.0))
     for k in range(SECTORS):
@@ -158,6 +184,7 @@ def sector_distances(cells, key_x0, key_y0, resolution, px, py, yaw, min_distanc
 def sector_distances_of(cells: np.ndarray, lo_key, resolution: float, position, yaw: float,
                         min_distance_m: float, max_distance_m: float, threshold: int) -> np.ndarray:
     """sector_distances on a window read at key lo_key, for a vehicle at `position` (map frame)."""
+    offsets, bounds = ring_order(int(math.ceil(max_distance_m / resolution)) + 3)
     return sector_distances(cells, int(lo_key[0]), int(lo_key[1]), float(resolution), float(position[0]),
                             float(position[1]), float(yaw), float(min_distance_m), float(max_distance_m),
-                            int(threshold))
+                            int(threshold), offsets, bounds)
