@@ -4,7 +4,7 @@ OBSTACLE_DISTANCE (MAVLink common) arrives as distances per angular sector; it i
 bins of 5 degrees (0 forward, clockwise, FRD). With CP_DIST > 0 (PX4's parameter; -1 = off, as on
 PX4), in position-controlled and offboard flight the horizontal velocity setpoint's component
 toward every bin is cut to what lets the vehicle stop CP_DIST short of the obstacle in it:
-    room = distance - CP_DIST - (approach speed now) * (age of the data)
+    room = distance - CP_DIST - (approach speed now) * (age of the data + CP_DELAY)
     allowed = min(sqrt(2 * BRAKE_ACCEL * room), room / CP_DELAY), 0 when room <= 0.
 A bin without data (UINT16_MAX, or no message for DATA_TIMEOUT_S) counts as an obstacle at the
 vehicle (no motion toward it) unless CP_GO_NO_DATA = 1, as on PX4. A bin reading max_distance + 1
@@ -83,7 +83,7 @@ def constrain_velocity(vel_xy, vel_now_xy, yaw_enu: float, bins: ObstacleBins | 
     u = np.stack([np.cos(theta), np.sin(theta)], axis=1)
     approach = np.maximum(u @ np.asarray(vel_now_xy, dtype=np.float64), 0.0)
     with np.errstate(invalid="ignore"):
-        room = distances - cp_dist - approach * age
+        room = distances - cp_dist - approach * (age + cp_delay)
         allowed = np.minimum(np.sqrt(2.0 * BRAKE_ACCEL * np.maximum(room, 0.0)),
                              np.maximum(room, 0.0) / max(cp_delay, 0.05))
     allowed[np.isnan(distances)] = np.inf if go_no_data else 0.0
