@@ -12,6 +12,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -73,7 +74,7 @@ class ObstacleReporter:
         self.max_cm = int(math.floor(config.max_distance_m * 100 + 1e-6))
         self.counters = {"sent": 0, "no_pose": 0, "with_global": 0, "errors": 0}
         self.last: np.ndarray | None = None
-        self._times_s: list[float] = []
+        self._times_s: deque[float] = deque(maxlen=TIMING_WINDOW)
         self.max_s = 0.0
         self._stop = threading.Event()
 
@@ -107,7 +108,7 @@ class ObstacleReporter:
         self.counters["sent"] += 1
         spent = time.perf_counter() - t0
         self.max_s = max(self.max_s, spent)
-        self._times_s = (self._times_s + [spent])[-TIMING_WINDOW:]
+        self._times_s.append(spent)
 
     def run(self) -> None:
         """Update every 1/rate_hz s until stop(); an error on one update is logged (first three) and
@@ -132,7 +133,7 @@ class ObstacleReporter:
 
     def status(self) -> dict:
         last = self.last
-        times = self._times_s
+        times = list(self._times_s)
         return {
             "enabled": True,
             "rate_hz": self.config.rate_hz,

@@ -11,6 +11,7 @@ import pytest
 from daemon_harness import in_process_memory_mb, workdir
 from pymavlink.dialects.v20 import common as mav
 
+from coopd.cli.daemon_commands import format_status
 from coopd.daemon.config import ObstaclesConfig, from_dict
 from coopd.daemon.obstacles import ObstacleReporter
 from coopd.daemon.service import Daemon, StartupError
@@ -127,6 +128,8 @@ def test_the_daemon_sends_obstacle_distance_at_the_configured_rate(wd):
         # only updates before the first odometry went without a pose
         assert status["enabled"] and status["sent"] >= len(got) + status["no_pose"]
         assert any(t["role"] == "obstacles" for t in d.priorities.report())
+        row = [line for line in format_status(d.handle_status({})).splitlines() if "obstacles" in line]
+        assert row and "OBSTACLE_DISTANCE sent at 10.0 Hz" in row[0] and "72 sectors no data" in row[0]
     finally:
         fc.close()
         d.request_stop("test")
