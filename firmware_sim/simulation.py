@@ -205,11 +205,14 @@ class Simulation:
             )
             v.sim = self
             self.vehicles.append(v)
-        self._vehicle_of_body = {v.body_id: v for v in self.vehicles}
         names = [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
                  for g in range(self.model.ngeom)]
         self._geom_names = names
-        self._ground = {g for g, n in enumerate(names) if n.startswith(FLOOR_PREFIX)}
+        self._geom_ground = [n.startswith(FLOOR_PREFIX) for n in names]
+        owner_of_body = {v.body_id: v.index for v in self.vehicles}
+        self._geom_owner = [owner_of_body.get(int(b), -1) for b in self.model.geom_bodyid]
+        """Vehicle index per geom (-1: the world's); plain lists, read at every physics step."""
+        self._touching_any = False
         if mavlink_hosts is not None and len(mavlink_hosts) != n_vehicles:
             raise ValueError("need one MAVLink host per vehicle")
         if not isinstance(mavlink_bind_host, str) and len(mavlink_bind_host) != n_vehicles:
@@ -358,14 +361,19 @@ class Simulation:
     def _record_contacts(self) -> None:
         """Log every contact a vehicle's body begins with a geom that is not the floor (a wall, furniture,
         another vehicle): Vehicle.contact_count, Vehicle.contacts (the first MAX_CONTACTS_LOGGED)."""
-        d, m = self.data, self.model
+        d = self.data
         now: dict[int, set[int]] = {}
         if d.ncon:
-            pairs = np.stack([d.contact.geom1[: d.ncon], d.contact.geom2[: d.ncon]], axis=1)
-            for mine, other in np.concatenate([pairs, pairs[:, ::-1]]).tolist():
-                v = self._vehicle_of_body.get(int(m.geom_bodyid[mine]))
-                if v is not None and other not in self._ground and m.geom_bodyid[other] != v.body_id:
-                    now.setdefault(v.index, set()).add(other)
+            owner, ground = self._geom_owner, self._geom_ground
+            for a, b in d.contact.geom.tolist():  # a few pairs: plain Python is cheaper than numpy here
+                oa, ob = owner[a], owner[b]
+                if oa >= 0 and ob != oa and not ground[b]:
+                    now.setdefault(oa, set()).add(b)
+                if ob >= 0 and oa != ob and not ground[a]:
+                    now.setdefault(ob, set()).add(a)
+        if not now and not self._touching_any:
+            return
+        self._touching_any = bool(now)
         for v in self.vehicles:
             touching = now.get(v.index, set())
             for g in touching - v.touching:
