@@ -9,7 +9,7 @@
 | coopd-mapping   | mapping -3  | newest frame + interpolated pose -> local grid               |
 | coopd-sharing   | sharing 0   | starts the sharing service (its threads inherit), publishes |
 | coopd-merging   | merging +10 | Merger.run: local + received -> global map                   |
-| coopd-obstacles | obstacles -3| ObstacleReporter.run: map around the vehicle -> FC, [obstacles] |
+| coopd-obstacles | obstacles -3| ObstacleReporter.run: map near the vehicle -> FC ([obstacles]) |
 | coopd-control   | control 0   | ControlServer: coopctl                                       |
 | main            | -           | run(): checkpoints, memory ledger, sd_notify STATUS, health  |
 | coopd-watchdog  | -           | WATCHDOG=1 while main, mapping, merging and sharing progress |
