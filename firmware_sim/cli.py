@@ -165,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         "mavlink": [dict(v.link.stats) if v.link else {} for v in sim.vehicles],
         "mavlink_gcs": [dict(v.gcs_link.stats) if v.gcs_link else {} for v in sim.vehicles],
         "camera_frames_dropped": [v.publisher.frames_dropped if v.publisher else 0 for v in sim.vehicles],
+        "contacts": [v.contact_count for v in sim.vehicles],
     }
     print(json.dumps(stats), flush=True)
     return 0

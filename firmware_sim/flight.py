@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from firmware_sim import control
+from firmware_sim.collision import ObstacleBins, constrain_velocity
 from firmware_sim.control import Airframe, Gains
 from firmware_sim.frames import wrap_pi, yaw_of
 
@@ -92,6 +93,11 @@ class FlightController:
     slow_since: float | None = None
     last_state: EstimatedState | None = None
     last_force: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    obstacles: ObstacleBins | None = None
+    """The newest OBSTACLE_DISTANCE as body bins (collision prevention, CP_DIST)."""
+    cp_cut_steps: int = 0
+    """Control steps in which collision prevention cut the horizontal velocity setpoint."""
+    now: float = 0.0
 
     # ------------------------------------------------------------------ commands (return MAV_RESULT)
 
@@ -219,6 +225,7 @@ class FlightController:
     def update(self, t: float, dt: float, s: EstimatedState) -> tuple[np.ndarray, np.ndarray]:
         """Advance the mode logic and return (force in local ENU, torque in body FLU) for this step."""
         self.last_state = s
+        self.now = t
         if not self.armed:
             self.landed = True
             return np.zeros(3), np.zeros(3)
@@ -359,6 +366,20 @@ class FlightController:
 
     # ------------------------------------------------------------------ control
 
+    def _prevent_collision(self, vel_sp: list[float], vel: list[float], rot) -> list[float]:
+        """PX4-style collision prevention (firmware_sim.collision) in position-controlled and offboard
+        flight with CP_DIST > 0: the horizontal setpoint toward near or unknown sectors is cut."""
+        cp_dist = self.param("CP_DIST", -1.0)
+        if cp_dist <= 0 or self.main_mode not in (MAIN_OFFBOARD, MAIN_POSCTL):
+            return vel_sp
+        yaw = math.atan2(rot[1][0], rot[0][0])
+        xy, cut = constrain_velocity(vel_sp[:2], vel[:2], yaw, self.obstacles, self.now, cp_dist,
+                                     self.param("CP_DELAY", 0.4), self.param("CP_GO_NO_DATA", 0) >= 1)
+        if not cut:
+            return vel_sp
+        self.cp_cut_steps += 1
+        return [float(xy[0]), float(xy[1]), vel_sp[2]]
+
     def _control(self, dt: float, s: EstimatedState, sp: Setpoint) -> tuple[np.ndarray, np.ndarray]:
         """Run the cascade for a setpoint; NaN position components fall back to velocity control."""
         g = self.gains
@@ -372,6 +393,7 @@ class FlightController:
             v_pos = control.velocity_setpoint(pos, target, g, cruise)
             feed = sp.vel is not None
             vel_sp = [(v_pos[k] + (vel_sp[k] if feed else 0.0)) if known[k] else vel_sp[k] for k in range(3)]
+        vel_sp = self._prevent_collision(vel_sp, vel, rot)
         if sp.yaw_rate is not None and math.isfinite(sp.yaw_rate):
             self.yaw_sp = wrap_pi(self.yaw_sp + max(-g.max_yaw_rate, min(g.max_yaw_rate, sp.yaw_rate)) * dt)
         elif sp.yaw is not None and math.isfinite(sp.yaw):

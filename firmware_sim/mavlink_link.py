@@ -16,6 +16,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mav
 
 from firmware_sim import flight
+from firmware_sim.collision import bins_from_message
 from firmware_sim.flight import Setpoint
 from firmware_sim.frames import ENU_TO_NED, enu_flu_to_ned_frd, euler_zyx, mat_to_quat, wrap_pi
 from firmware_sim.mission_protocol import MissionServer, nav_target
@@ -77,7 +78,7 @@ CAPABILITIES = (
     | mav.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
     | mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2
 )
-INT_PARAMS = {"MAV_SYS_ID", "SYS_AUTOSTART", "MAV_TYPE"}
+INT_PARAMS = {"MAV_SYS_ID", "SYS_AUTOSTART", "MAV_TYPE", "CP_GO_NO_DATA"}
 FORCE_DISARM_MAGIC = 21196
 
 # SET_POSITION_TARGET type_mask bits
@@ -514,6 +515,16 @@ class MavlinkLink:
         else:
             f, ptype = float(value), mav.MAV_PARAM_TYPE_REAL32
         self.send(self.tx.param_value_encode(name.encode(), f, ptype, count, index))
+
+    def _on_obstacle_distance(self, m) -> None:
+        """OBSTACLE_DISTANCE: the flight controller's obstacle bins (collision prevention, CP_DIST)."""
+        s = self.sim.estimated_state(self.v)
+        bins = bins_from_message(m, euler_zyx(enu_flu_to_ned_frd(s.rot))[2], self.sim.time)
+        if bins is None:
+            self.stats["obstacle_distance_refused"] += 1
+            return
+        self.v.fc.obstacles = bins
+        self.stats["obstacle_distance"] += 1
 
     def _on_set_position_target_local_ned(self, m) -> None:
         """Offboard setpoint in local NED (or body / offset frames), honouring type_mask."""

@@ -16,6 +16,7 @@ import numpy as np
 
 from firmware_sim.camera import CameraConfig, DepthCamera
 from firmware_sim.camera_server import CameraPublisher, encode_frame
+from firmware_sim.collision import Contact
 from firmware_sim.control import Airframe
 from firmware_sim.flight import (
     NAV_LAND,
@@ -35,6 +36,9 @@ CONTROL_EVERY = 2
 TRAJECTORY_EVERY = 10
 MAX_STEPS_PER_BATCH = 25
 MAX_LAG_WALL_S = 0.25  # behind real time x speed by more than this: re-anchor the pacing
+MAX_CONTACTS_LOGGED = 1000
+FLOOR_PREFIX = "floor"
+"""World geoms named so are the ground: resting or landing on them is no collision."""
 DEFAULT_CAMERA = CameraConfig()
 
 
@@ -84,6 +88,11 @@ class Vehicle:
     """Wall-clock (monotonic) time until which the camera publishes nothing (a stall fault)."""
     frames_withheld: int = 0
     """Frames the camera took but did not publish because it was stalled."""
+    contacts: list[Contact] = field(default_factory=list)
+    """The first MAX_CONTACTS_LOGGED contacts of the body with anything but the floor."""
+    contact_count: int = 0
+    """Contacts begun with anything but the floor (each geom touched anew counts once)."""
+    touching: set[int] = field(default_factory=set)
 
     sim: Simulation | None = field(default=None, repr=False)
 
@@ -196,6 +205,14 @@ class Simulation:
             )
             v.sim = self
             self.vehicles.append(v)
+        names = [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
+                 for g in range(self.model.ngeom)]
+        self._geom_names = names
+        self._geom_ground = [n.startswith(FLOOR_PREFIX) for n in names]
+        owner_of_body = {v.body_id: v.index for v in self.vehicles}
+        self._geom_owner = [owner_of_body.get(int(b), -1) for b in self.model.geom_bodyid]
+        """Vehicle index per geom (-1: the world's); plain lists, read at every physics step."""
+        self._touching_any = False
         if mavlink_hosts is not None and len(mavlink_hosts) != n_vehicles:
             raise ValueError("need one MAVLink host per vehicle")
         if not isinstance(mavlink_bind_host, str) and len(mavlink_bind_host) != n_vehicles:
@@ -329,6 +346,7 @@ class Simulation:
         mujoco.mj_step(self.model, d)
         self.steps += 1
         self.time = self.steps * PHYSICS_DT
+        self._record_contacts()
         if self.steps % TRAJECTORY_EVERY == 0:
             self._record_all()
         for v in self.vehicles:
@@ -339,6 +357,38 @@ class Simulation:
                 reached, texts = take_vehicle_events(v.fc)
                 for link in v.links:
                     link.on_sim_step(self.time, reached, texts)
+
+    def _record_contacts(self) -> None:
+        """Log every contact a vehicle's body begins with a geom that is not the floor (a wall, furniture,
+        another vehicle): Vehicle.contact_count, Vehicle.contacts (the first MAX_CONTACTS_LOGGED)."""
+        d = self.data
+        now: dict[int, set[int]] = {}
+        if d.ncon:
+            owner, ground = self._geom_owner, self._geom_ground
+            for a, b in d.contact.geom.tolist():  # a few pairs: plain Python is cheaper than numpy here
+                oa, ob = owner[a], owner[b]
+                if oa >= 0 and ob != oa and not ground[b]:
+                    now.setdefault(oa, set()).add(b)
+                if ob >= 0 and oa != ob and not ground[a]:
+                    now.setdefault(ob, set()).add(a)
+        if not now and not self._touching_any:
+            return
+        self._touching_any = bool(now)
+        for v in self.vehicles:
+            touching = now.get(v.index, set())
+            for g in touching - v.touching:
+                v.contact_count += 1
+                if len(v.contacts) < MAX_CONTACTS_LOGGED:
+                    pos = d.qpos[v.qpos_adr : v.qpos_adr + 3]
+                    speed = float(np.linalg.norm(d.qvel[v.qvel_adr : v.qvel_adr + 3]))
+                    v.contacts.append(Contact(self.time, v.index, self._geom_names[g],
+                                              tuple(float(x) for x in pos), speed))
+            v.touching = touching
+
+    def contacts(self, i: int) -> list[Contact]:
+        """The contacts vehicle i's body began with anything but the floor, oldest first."""
+        with self.lock:
+            return list(self.vehicles[i].contacts)
 
     def stall_camera(self, i: int, seconds: float) -> None:
         """Fault injection: vehicle i's camera publishes nothing for the next `seconds` wall seconds
@@ -550,6 +600,9 @@ def default_params(index: int) -> dict:
         "MAV_SYS_ID": index + 1,
         "SYS_AUTOSTART": 4001,
         "MAV_TYPE": 2,
+        "CP_DIST": -1.0,
+        "CP_DELAY": 0.4,
+        "CP_GO_NO_DATA": 0,
     }
 
 

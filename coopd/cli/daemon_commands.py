@@ -177,6 +177,14 @@ def format_status(s: dict) -> str:
     if mg.get("start_error"):
         rows.append(("merging", f"{mg.get('state', '-')}" if not mg.get("available", True)
                      else f"{mg.get('state', '-')}; {mg['start_error']}"))
+    ob = s.get("obstacles") or {}
+    if ob.get("enabled"):
+        nearest = ob.get("nearest_m")
+        rows.append(("obstacles", f"{ob.get('sent', '-')} OBSTACLE_DISTANCE sent at "
+                     f"{ob.get('rate_hz', '-')} Hz; "
+                     f"last: nearest {'-' if nearest is None else f'{nearest} m'}, "
+                     f"{ob.get('sectors_no_data', '-')} sectors no data, {ob.get('sectors_free', '-')} free; "
+                     f"{ob.get('no_pose', '-')} without a pose"))
     stalled = (s.get("watchdog") or {}).get("stalled_threads") or {}
     if stalled:
         rows.append(("health", "not healthy (watchdog not fed): "

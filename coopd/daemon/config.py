@@ -263,6 +263,31 @@ class MergingConfig:
 
 
 @dataclass(frozen=True)
+class ObstaclesConfig:
+    """[obstacles]: the map around the vehicle sent to the FC as MAVLink OBSTACLE_DISTANCE."""
+
+    enabled: bool = _key("send OBSTACLE_DISTANCE to the FC (off unless the file turns it on)", False)
+    rate_hz: float = _key("messages per second", 10.0, _between(1.0, 50.0, " Hz"))
+    min_distance_m: float = _key(
+        "nearer cells are the vehicle itself and are left out", 0.3, _between(0.05, 5.0, " m")
+    )
+    max_distance_m: float = _key(
+        "range read around the vehicle; free up to it reads max + 1 cm", 5.0, _between(0.5, 30.0, " m")
+    )
+    band_below_m: float = _key(
+        "the band of cells read reaches this far below the vehicle", 0.3, _between(0.0, 5.0, " m")
+    )
+    band_above_m: float = _key(
+        "the band of cells read reaches this far above the vehicle", 0.3, _between(0.0, 5.0, " m")
+    )
+
+    def __post_init__(self):
+        if self.min_distance_m >= self.max_distance_m:
+            raise ConfigError("obstacles.min_distance_m",
+                              f"{self.min_distance_m} m is not below max_distance_m {self.max_distance_m} m")
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     """[daemon]: process-wide settings."""
 
@@ -295,6 +320,7 @@ class Config:
     mapping: MapperConfig = field(default_factory=MapperConfig)
     sharing: SharingConfig = field(default_factory=SharingConfig)
     merging: MergingConfig = field(default_factory=MergingConfig)
+    obstacles: ObstaclesConfig = field(default_factory=ObstaclesConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
     @classmethod

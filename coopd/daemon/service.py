@@ -9,6 +9,7 @@
 | coopd-mapping   | mapping -3  | newest frame + interpolated pose -> local grid               |
 | coopd-sharing   | sharing 0   | starts the sharing service (its threads inherit), publishes |
 | coopd-merging   | merging +10 | Merger.run: local + received -> global map                   |
+| coopd-obstacles | obstacles -3| ObstacleReporter.run: map near the vehicle -> FC ([obstacles]) |
 | coopd-control   | control 0   | ControlServer: coopctl                                       |
 | main            | -           | run(): checkpoints, memory ledger, sd_notify STATUS, health  |
 | coopd-watchdog  | -           | WATCHDOG=1 while main, mapping, merging and sharing progress |
@@ -41,6 +42,7 @@ from coopd.daemon.control import DEFAULT_MAX_REPLY_BUFFER, BlobReply, CommandFai
 from coopd.daemon.gcs import GcsReporter, Health
 from coopd.daemon.merger import Merger, find_merge_all, in_global_map, mergeable_cells
 from coopd.daemon.notify import Notifier, WatchdogPinger
+from coopd.daemon.obstacles import ObstacleReporter
 from coopd.daemon.threads import ThreadPriorities, WorkerProgress
 from coopd.daemon.warmup import warm_up_kernels
 from coopd.geometry import euler_to_matrix, matrix_to_quat
@@ -318,6 +320,7 @@ class Daemon:
             progress=self.progress,
             start_error=self.merge_start_error,
         )
+        self.obstacles = self._make_obstacles() if config.obstacles.enabled else None
         self.control = ControlServer(
             config.daemon.control_socket,
             {
@@ -414,6 +417,19 @@ class Daemon:
         self.budget.reserve("local", mapper.grid.size)
         return mapper
 
+    def _make_obstacles(self) -> ObstacleReporter:
+        """The OBSTACLE_DISTANCE reporter on the global map overlaid with the live local map."""
+        try:
+            return ObstacleReporter(
+                self.config.obstacles, self.config.mapping.resolution,
+                local_map=lambda: (self.mapper.grid, self.mapper.lock),
+                global_map=self.merger.global_map,
+                pose=lambda: None if self.link.odometry_stale() else self.link.poses.latest(),
+                send=self.link.send_obstacle_distance,
+            )
+        except ValueError as e:
+            raise StartupError(str(e)) from e
+
     def _load_origin(self) -> np.ndarray | None:
         path = self.state_dir / FRAME_FILE
         try:
@@ -464,6 +480,8 @@ class Daemon:
             if not started.wait(10.0) or self._sharing_error is not None:
                 raise StartupError(f"sharing on port {self.config.sharing.port}: {self._sharing_error}")
         self._spawn("coopd-merging", "merging", self.merger.run)
+        if self.obstacles is not None:
+            self._spawn("coopd-obstacles", "obstacles", self.obstacles.run)
         self.watchdog.start()
         self.state = "running"
         self.notifier.ready(self.summary())
@@ -552,10 +570,12 @@ class Daemon:
         self._stop.set()
         self.watchdog.stop()
         self.merger.stop()
+        if self.obstacles is not None:
+            self.obstacles.stop()
         self.camera.stop()
         self.link.stop()
         for t in self._threads:
-            if t.name in ("coopd-mapping", "coopd-camera", "coopd-mavlink"):
+            if t.name in ("coopd-mapping", "coopd-camera", "coopd-mavlink", "coopd-obstacles"):
                 t.join(SHUTDOWN_JOIN_S)
         self.checkpoint()
         if self.sharing is not None:

@@ -79,6 +79,7 @@ def build(daemon) -> dict:
         "sharing": None if daemon.sharing is None else _jsonable(daemon.sharing.stats()),
         "merges": merges,
         "merging": merges["state"],
+        "obstacles": {"enabled": False} if daemon.obstacles is None else daemon.obstacles.status(),
         "memory": {**daemon.budget.snapshot(), **daemon.rss_watch.status()},
         "threads": threads(daemon),
         "control": daemon.control.stats(),

@@ -20,11 +20,13 @@ ROLE_NICE = {
     "mavlink": -5,
     "camera": -3,
     "mapping": -3,
+    "obstacles": -3,
     "sharing": 0,
     "control": 0,
     "merging": 10,
 }
-"""Nice per role (design: mavlink highest; camera, mapping high; sharing, control normal; merging low)."""
+"""Nice per role (design: mavlink highest; camera, mapping, obstacles high; sharing, control normal;
+merging low)."""
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ import numpy as np
 from coopd.daemon.config import DEFAULT_CONFIG_PATH, Config, ConfigError, load_config
 from coopd.geometry import rigid, rotation_z
 from coopd.grid import OccupancyGrid, transform_grid
+from coopd.grid.sectors import sector_distances_of
 from coopd.mapping import MapperConfig, load_kernels
 from coopd.sharing.wire import MapMeta, decode_map, encode_map
 
@@ -49,6 +50,8 @@ def warm_up_kernels(mapping: MapperConfig, vehicle_id: int, merge_fn: Callable |
     Returns why a warm-up merge failed (merging stays on; the daemon reports it), else None."""
     grid = decode_map(encode_map(load_kernels(mapping), MapMeta(vehicle_id, 1)))[0]
     grid.counts()
+    sector_distances_of(np.zeros((5, 5, 2), np.int8), (0, 0), mapping.resolution, (0.0, 0.0), 0.0,
+                        0.05, 0.3, 50)
     if merge_fn is None:
         return None
     room = OccupancyGrid.empty((40, 40, 12), mapping.resolution)

@@ -114,6 +114,8 @@ class VehicleLink:
         self.system_status = mav.MAV_STATE_ACTIVE
         """MAV_STATE in our HEARTBEAT; the daemon sets it from its health (BOOT, STANDBY, ACTIVE...)."""
         self.statustexts = StatusTextLimiter()
+        self._obstacles: tuple | None = None
+        """The newest OBSTACLE_DISTANCE waiting for the link thread (send_obstacle_distance)."""
         self._backoff = config.reopen_backoff_s[0]
         self._next_open = 0.0
         self._stop = threading.Event()
@@ -310,6 +312,28 @@ class VehicleLink:
         the GCS; any thread may call it. False when the rate limit refused it (counted)."""
         return self.statustexts.push(severity, text, time.monotonic())
 
+    def send_obstacle_distance(self, distances_cm, min_cm: int, max_cm: int, t_fc_s: float | None) -> None:
+        """Queue an OBSTACLE_DISTANCE (72 uint16 cm, sector 0 forward, 5 degrees clockwise, body FRD)
+        for the link thread, the only one that writes MAVLink; a newer one replaces one not yet sent
+        (counted). Any thread may call it; t_fc_s is the FC time of the pose it was computed at."""
+        message = ([int(d) for d in distances_cm], int(min_cm), int(max_cm), t_fc_s)
+        with self._lock:
+            if self._obstacles is not None:
+                self.counters["obstacle_distance_replaced"] += 1
+            self._obstacles = message
+
+    def _send_obstacles(self) -> None:
+        with self._lock:
+            message, self._obstacles = self._obstacles, None
+        if message is None:
+            return
+        distances, min_cm, max_cm, t_fc = message
+        t_us = 0 if t_fc is None else max(0, int(t_fc * 1e6))
+        self.mav.send(self.mav.obstacle_distance_encode(
+            t_us, mav.MAV_DISTANCE_SENSOR_UNKNOWN, distances, 5, min_cm, max_cm, 5.0, 0.0,
+            mav.MAV_FRAME_BODY_FRD))
+        self.counters["obstacle_distance_sent"] += 1
+
     def _run_timers(self, now: float) -> None:
         cfg, t = self.config, self._timers
         if now - t["heartbeat"] >= cfg.heartbeat_period_s:
@@ -323,7 +347,10 @@ class VehicleLink:
             self.mav.send(self.mav.statustext_encode(severity, text))
             self.counters["statustext_sent"] += 1
         if self.target_system == 0 or self.state != "ok":
+            with self._lock:
+                self._obstacles = None  # computed for a pose the FC may no longer hold: never late
             return
+        self._send_obstacles()
         est = self.clock.estimate()
         period = cfg.timesync_period_s if est is not None and est.samples >= 10 else cfg.timesync_period_s / 5
         if now - t["timesync"] >= period:

@@ -89,6 +89,11 @@ BAD = [
     ("[sharing]\nswarm_key_file = 'key'", "sharing.swarm_key_file", "absolute"),
     ("[sharing]\nrelay = 1", "sharing.relay", "true or false"),
     ("[merging]\nperiod_s = 0", "merging.period_s", "outside"),
+    ("[obstacles]\nrate_hz = 0.5", "obstacles.rate_hz", "outside"),
+    ("[obstacles]\nmax_distance_m = 40", "obstacles.max_distance_m", "outside"),
+    ("[obstacles]\nmin_distance_m = 2.0\nmax_distance_m = 1.0", "obstacles.min_distance_m", "not below"),
+    ("[obstacles]\nband_below_m = -0.1", "obstacles.band_below_m", "outside"),
+    ("[obstacles]\nenabled = 'yes'", "obstacles.enabled", "true or false"),
     ("[daemon]\nmemory_mb = 8", "daemon.memory_mb", "outside"),
     ("[daemon]\nlog_level = 'verbose'", "daemon.log_level", "one of"),
     ("[daemon]\nstate_dir = 'var/lib'", "daemon.state_dir", "absolute"),
@@ -139,3 +144,10 @@ def test_syntax_and_file_errors(tmp_path):
 
 def test_default_file_is_plain_toml():
     assert set(tomllib.loads(ETC.read_text())) == {f.name for f in dataclasses.fields(Config)}
+
+
+def test_obstacles_are_off_by_default_and_turned_on_by_the_file():
+    assert Config.defaults().obstacles.enabled is False
+    c = parse_config("[obstacles]\nenabled = true\nrate_hz = 20\nband_above_m = 0.5\n")
+    assert c.obstacles.enabled and c.obstacles.rate_hz == 20.0 and c.obstacles.band_above_m == 0.5
+    assert c.obstacles.max_distance_m == 5.0
