@@ -178,7 +178,7 @@ def distance_field(occupied, lo, shape, max_cells):
     # the box grown by r on each side (clipped to the grid), where occupied cells can reach it from
     gx0, gy0 = max(0, lo[0] - r), max(0, lo[1] - r)
     gx1, gy1 = min(mx, lo[0] + shape[0] + r), min(my, lo[1] + shape[1] + r)
-    z0, z1 = lo[2], lo[2] + shape[2]
+    z0 = lo[2]
     nx, ny = gx1 - gx0, gy1 - gy0
     d1 = np.full((nx, ny, shape[2]), big)  # along z: only the box's z range is needed after it
     for x in range(nx):
