@@ -121,6 +121,9 @@ FACING_MIN = 0.38
 component along it (cos 67.5 deg: a wall diagonal to the lattice faces two)."""
 SIDES = 6
 """+x, -x, +y, -y, +z, -z."""
+TUKEY_CELLS = (4.0, 2.0, 1.5)
+"""Scales (cells) of the field fit's Tukey weights, one pass each: wide first, then down to the
+noise of two maps' surfaces."""
 FIELD_SCALE = 64
 """Distance fields are stored in 1/FIELD_SCALE cell (uint8; 1.6 mm at 0.1 m cells)."""
 
@@ -304,14 +307,16 @@ class FieldFit:
 
 def field_fit(target_cells: np.ndarray, target_offset: np.ndarray, resolution: float, threshold: int,
               source: np.ndarray, source_normals: np.ndarray, t: np.ndarray, iterations: int = 20,
-              tukey_cells: float = 1.5, max_step_cells: float = 0.5) -> FieldFit:
+              tukey_cells=TUKEY_CELLS, max_step_cells: float = 0.5) -> FieldFit:
     """Sub-cell 6-DoF refinement: Levenberg-Marquardt on the distance (trilinear) from the moved
     source points (b's occupied cells, metres) to the centres of a's occupied cells that face the
-    same way (source_normals: their free-side normals, see free_sides), Tukey-weighted; a point
+    same way (source_normals: their free-side normals, see free_sides), Tukey-weighted at each scale
+    of tukey_cells in turn (wide first, so that a start a cell or two off is still drawn in); a point
     beyond FIELD_CELLS of any such cell (outside the overlap) does not count. Facing matters: where
     one map saw a wall from one side and the other from the other, the unsigned distance pulls the
     two sides together. Each step is held within max_step_cells at the points' extent and taken
-    only when it lowers the cost, so the result never fits worse than t."""
+    only when it lowers the cost, and the result is t itself unless it fits better at the last
+    scale: the fit never makes t worse by its own measure."""
     t = np.asarray(t, dtype=np.float64).copy()
     source = np.ascontiguousarray(source, dtype=np.float64)
     offset = np.asarray(target_offset, dtype=np.int64)
@@ -331,16 +336,35 @@ def field_fit(target_cells: np.ndarray, target_offset: np.ndarray, resolution: f
     origin = (lo + offset) * resolution  # metres of the fields' cell [0, 0, 0]
     sides = side_of(np.asarray(source_normals, dtype=np.float64), t[:3, :3])
 
-    def normal_equations(tt):
+    def normal_equations(tt, tukey):
         moved = apply(tt, source)
         k = np.ascontiguousarray(moved / resolution - offset - lo)
         centre = moved.mean(axis=0)
-        h, g, cost, used = _field_normal_equations(fields, k, sides, centre - origin, resolution, tukey_cells,
+        h, g, cost, used = _field_normal_equations(fields, k, sides, centre - origin, resolution, tukey,
                                                    float(FIELD_CELLS))
         return h, g, cost, used, centre
 
+    scales = np.atleast_1d(np.asarray(tukey_cells, dtype=np.float64))
+    extent = max(float(np.abs(apply(t, source) - apply(t, source).mean(axis=0)).max()), resolution)
+    start = t
+    for tukey in scales:
+        t = _levenberg_marquardt(lambda tt, k=tukey: normal_equations(tt, k), t, iterations,
+                                 extent, max_step_cells * resolution)
+    _, _, cost, used, _ = normal_equations(t, scales[-1])
+    _, _, start_cost, start_used, _ = normal_equations(start, scales[-1])
+    if start_cost <= cost:
+        t, cost, used = start, start_cost, start_used
+    counted = int(np.sum(sides >= 0))
+    rms = float(np.sqrt(6.0 * cost / max(1, counted))) * resolution if used else float("inf")
+    return FieldFit(t, int(used), rms)
+
+
+def _levenberg_marquardt(normal_equations, t: np.ndarray, iterations: int, extent: float,
+                         limit: float) -> np.ndarray:
+    """t improved by damped Gauss-Newton steps (left twists about the points' centre) on
+    normal_equations(t) -> (H, g, cost, used, centre); a step reaches at most limit metres at the
+    points' extent and is kept only when it lowers the cost."""
     h, g, cost, used, centre = normal_equations(t)
-    extent = max(float(np.abs(apply(t, source) - centre).max()), resolution)
     damping = 1e-3
     for _ in range(iterations):
         if used < 6:
@@ -351,7 +375,6 @@ def field_fit(target_cells: np.ndarray, target_offset: np.ndarray, resolution: f
         except np.linalg.LinAlgError:
             break
         reach = np.linalg.norm(step[:3]) * extent + np.linalg.norm(step[3:])
-        limit = max_step_cells * resolution
         if reach > limit:
             step *= limit / reach
         trial = _twist(step, centre) @ t
@@ -359,12 +382,10 @@ def field_fit(target_cells: np.ndarray, target_offset: np.ndarray, resolution: f
         if cost2 < cost:
             t, h, g, cost, used, centre = trial, h2, g2, cost2, used2, centre2
             damping = max(damping / 3.0, 1e-6)
-            if reach < 1e-3 * resolution:
+            if reach < 1e-2 * limit:
                 break
         else:
             damping *= 4.0
             if damping > 1e4:
                 break
-    counted = int(np.sum(sides >= 0))
-    rms = float(np.sqrt(6.0 * cost / max(1, counted))) * resolution if used else float("inf")
-    return FieldFit(t, int(used), rms)
+    return t
