@@ -306,7 +306,7 @@ class FieldFit:
 
 
 def field_fit(target_cells: np.ndarray, target_offset: np.ndarray, resolution: float, threshold: int,
-              source: np.ndarray, source_normals: np.ndarray, t: np.ndarray, iterations: int = 20,
+              source: np.ndarray, source_normals: np.ndarray, t: np.ndarray, iterations: int = 12,
               tukey_cells=TUKEY_CELLS, max_step_cells: float = 0.5) -> FieldFit:
     """Sub-cell 6-DoF refinement: Levenberg-Marquardt on the distance (trilinear) from the moved
     source points (b's occupied cells, metres) to the centres of a's occupied cells that face the
@@ -382,7 +382,7 @@ def _levenberg_marquardt(normal_equations, t: np.ndarray, iterations: int, exten
         if cost2 < cost:
             t, h, g, cost, used, centre = trial, h2, g2, cost2, used2, centre2
             damping = max(damping / 3.0, 1e-6)
-            if reach < 1e-2 * limit:
+            if reach < 0.05 * limit:
                 break
         else:
             damping *= 4.0
