@@ -109,8 +109,12 @@ class MergeParams:
     (14 left some transforms 0.2 m short of convergence)."""
     refine_max_points: int = 4000
     refine_subcell: bool = True
-    """After ICP, shift by the quarter-cell translation that lays b's points highest on a's smoothed
-    occupied cells (refine.subcell_shift): ICP between cell centres can stop a whole cell off."""
+    """After ICP, fit the chosen transform to a fraction of a cell (refine.field_fit: 6-DoF
+    Levenberg-Marquardt of b's occupied cells on the trilinear distance to a's occupied cells that
+    face the same way): ICP between cell centres stops up to a cell off, and pulls the two sides of
+    a wall seen from opposite sides together."""
+    refine_field_max_points: int = 20000
+    """b's occupied cells the sub-cell fit moves, thinned evenly to about this many."""
     refine_candidates: int = 6
     """Candidates refined and validated; beyond this many (the feature variants add hypotheses) the
     best by unrefined support go on. Every search hypothesis is refined (6 = search_candidates):

@@ -1,13 +1,15 @@
 """Refinement of a transform on the full-resolution grids: ICP between occupied cell centres, then a
-sub-cell shift on a smoothed surface.
+sub-cell fit on distance fields of a's surfaces.
 
 Point-to-point ICP with a shrinking correspondence radius (from six cells down to 1.5, then held),
 6 DoF so that small roll/pitch differences between drones are absorbed. Between two lattices of cell
 centres it has a local minimum at every whole-cell slide along a wall (every wall cell finds a
 partner at distance 0; only edges pull back), so it can stop a cell away from the truth even on a
-lossless copy. `subcell_shift` then moves the result by the translation, within +-1 cell in quarter
-cells, that puts the moved points highest on a Gaussian-smoothed image of the target's occupied
-cells, where sliding along a wall changes nothing and edges and corners decide.
+lossless copy; and where one map saw a wall from one side and the other map from the other side, it
+pairs the two sides and pulls them together. `field_fit` then moves b's occupied cells (6 DoF,
+Levenberg-Marquardt) onto the trilinearly interpolated distance to a's occupied cells that face the
+same way (their free side), where a slide along a wall is continuous and opposite sides of a wall
+never pair.
 """
 
 from dataclasses import dataclass
@@ -19,11 +21,8 @@ from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
 from ..geometry import apply
 from .mtm import estimate
-from .preprocess import gaussian
 
 _JIT = {"nogil": True, "cache": KERNEL_CACHE}
-SUBCELL_STEPS = np.arange(-4, 5) / 4.0
-"""Shifts tried per axis by subcell_shift, in cells."""
 
 
 @nb.njit(**_JIT)
@@ -114,48 +113,279 @@ def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: i
     return t, frac
 
 
+FIELD_CELLS = 3
+"""Distances in the field fit's distance fields are clipped at this many cells: a point farther from
+a's surfaces than that is outside the overlap and pulls nothing."""
+FACING_MIN = 0.38
+"""A surface cell faces one of the six axis directions when its free-side normal has at least this
+component along it (cos 67.5 deg: a wall diagonal to the lattice faces two)."""
+SIDES = 6
+"""+x, -x, +y, -y, +z, -z."""
+TUKEY_CELLS = (4.0, 2.0, 1.5)
+"""Scales (cells) of the field fit's Tukey weights, one pass each: wide first, then down to the
+noise of two maps' surfaces."""
+FIELD_SCALE = 64
+"""Distance fields are stored in 1/FIELD_SCALE cell (uint8; 1.6 mm at 0.1 m cells)."""
+
+
 @nb.njit(**_JIT)
-def _shift_scores(field, keys, steps):
-    """Sum of the trilinearly interpolated field at keys (fractional cell indices) + each shift."""
-    mx, my, mz = field.shape
-    n = steps.shape[0]
-    out = np.zeros((n, n, n))
-    for i in range(n):
-        for j in range(n):
-            for k in range(n):
-                acc = 0.0
-                for p in range(keys.shape[0]):
-                    x = keys[p, 0] + steps[i]
-                    y = keys[p, 1] + steps[j]
-                    z = keys[p, 2] + steps[k]
-                    x0, y0, z0 = int(np.floor(x)), int(np.floor(y)), int(np.floor(z))
-                    if x0 < 0 or y0 < 0 or z0 < 0 or x0 + 1 >= mx or y0 + 1 >= my or z0 + 1 >= mz:
+def _free_side(cells, threshold, x, y, z):
+    """Unit direction from an occupied cell towards its known-free neighbours (26), or zeros when the
+    free cells around it do not point one way (none, or all round)."""
+    mx, my, mz = cells.shape
+    n = np.zeros(3)
+    for dx in range(-1, 2):
+        for dy in range(-1, 2):
+            for dz in range(-1, 2):
+                a, b, c = x + dx, y + dy, z + dz
+                if (dx == 0 and dy == 0 and dz == 0) or a < 0 or b < 0 or c < 0 or a >= mx or b >= my \
+                        or c >= mz:
+                    continue
+                v = cells[a, b, c]
+                if 0 <= v < threshold:
+                    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+                    n[0] += dx * inv
+                    n[1] += dy * inv
+                    n[2] += dz * inv
+    length = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    if length < 1.0:
+        return np.zeros(3)
+    return n / length
+
+
+@nb.njit(**_JIT)
+def free_sides(cells, threshold, offset, res, points):
+    """Free-side normal (unit, or zeros) of the occupied cell under each point (metres, grid frame)."""
+    out = np.zeros((points.shape[0], 3))
+    mx, my, mz = cells.shape
+    for p in range(points.shape[0]):
+        x = int(np.floor(points[p, 0] / res + 0.5)) - offset[0]
+        y = int(np.floor(points[p, 1] / res + 0.5)) - offset[1]
+        z = int(np.floor(points[p, 2] / res + 0.5)) - offset[2]
+        if 0 <= x < mx and 0 <= y < my and 0 <= z < mz and cells[x, y, z] >= threshold:
+            out[p] = _free_side(cells, threshold, x, y, z)
+    return out
+
+
+@nb.njit(**_JIT)
+def facing_fields(cells, threshold, lo, shape, max_cells):
+    """Per side (SIDES), the distance in cells from each cell of the box [lo, lo + shape) of the grid
+    to the nearest centre of an occupied cell facing that side (its free-side normal has at least
+    FACING_MIN along it: which side of a wall the map saw it from), clipped at max_cells; uint8 in
+    units of 1/FIELD_SCALE cell. Occupied cells just outside the box count too. Each occupied cell
+    stamps its distance into the ball of max_cells around it: the cost follows the surfaces, not the
+    volume of the box."""
+    r = int(np.ceil(max_cells))
+    offsets = []
+    for dx in range(-r, r + 1):
+        for dy in range(-r, r + 1):
+            for dz in range(-r, r + 1):
+                dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if dist <= max_cells:
+                    offsets.append((dx, dy, dz, np.uint8(round(dist * FIELD_SCALE))))
+    clip = np.uint8(round(max_cells * FIELD_SCALE))
+    out = np.full((SIDES, shape[0], shape[1], shape[2]), clip, dtype=np.uint8)
+    mx, my, mz = cells.shape
+    for x in range(max(0, lo[0] - r), min(mx, lo[0] + shape[0] + r)):
+        for y in range(max(0, lo[1] - r), min(my, lo[1] + shape[1] + r)):
+            for z in range(max(0, lo[2] - r), min(mz, lo[2] + shape[2] + r)):
+                if cells[x, y, z] < threshold:
+                    continue
+                n = _free_side(cells, threshold, x, y, z)
+                for a in range(3):
+                    if n[a] >= FACING_MIN:
+                        side = 2 * a
+                    elif n[a] <= -FACING_MIN:
+                        side = 2 * a + 1
+                    else:
                         continue
-                    fx, fy, fz = x - x0, y - y0, z - z0
-                    for a in range(2):
-                        wa = fx if a else 1.0 - fx
-                        for b in range(2):
-                            wb = fy if b else 1.0 - fy
-                            for c in range(2):
-                                wc = fz if c else 1.0 - fz
-                                acc += wa * wb * wc * field[x0 + a, y0 + b, z0 + c]
-                out[i, j, k] = acc
+                    for dx, dy, dz, dist in offsets:
+                        i, j, k = x + dx - lo[0], y + dy - lo[1], z + dz - lo[2]
+                        if 0 <= i < shape[0] and 0 <= j < shape[1] and 0 <= k < shape[2] \
+                                and dist < out[side, i, j, k]:
+                            out[side, i, j, k] = dist
     return out
 
 
-def subcell_shift(target_occupied: np.ndarray, target_offset: np.ndarray, resolution: float,
-                  source: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """t moved by the translation (within +-1 cell, quarter-cell steps) that lays the source points
-    (b frame, metres) highest on the target's occupied cells smoothed by a Gaussian of one cell."""
-    keys = apply(t, source) / resolution - target_offset
-    lo = np.maximum(np.floor(keys.min(axis=0)).astype(np.int64) - 4, 0)
-    hi = np.minimum(np.ceil(keys.max(axis=0)).astype(np.int64) + 5, np.array(target_occupied.shape))
-    if len(source) == 0 or np.any(hi - lo < 2):
-        return t
-    crop = target_occupied[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32)
-    field = gaussian(crop, radius=2, sigma=1.0)
-    scores = _shift_scores(field, np.ascontiguousarray(keys - lo), SUBCELL_STEPS)
-    best = np.array(np.unravel_index(int(np.argmax(scores)), scores.shape))
-    out = t.copy()
-    out[:3, 3] += SUBCELL_STEPS[best] * resolution
+@nb.njit(**_JIT)
+def _field_normal_equations(fields, keys, sides, centre, res, tukey_cells, max_cells):
+    """Gauss-Newton normal equations (H 6x6, g 6), robust cost and points used, of the residuals
+    d(q) = fields[side] at q = keys (fractional cell indices of the moved points), trilinear, with a
+    left twist (rotation about centre, translation) as unknowns and Tukey weights of scale
+    tukey_cells; points with no side (-1), outside the fields or at their clip distance are left out.
+    Residuals and lever arms in metres."""
+    _, mx, my, mz = fields.shape
+    h = np.zeros((6, 6))
+    g = np.zeros(6)
+    j = np.zeros(6)
+    cost = 0.0
+    used = 0
+    c2 = tukey_cells * tukey_cells
+    inv_scale = 1.0 / FIELD_SCALE
+    for p in range(keys.shape[0]):
+        s = sides[p]
+        if s < 0:
+            continue
+        x, y, z = keys[p, 0], keys[p, 1], keys[p, 2]
+        x0, y0, z0 = int(np.floor(x)), int(np.floor(y)), int(np.floor(z))
+        if x0 < 0 or y0 < 0 or z0 < 0 or x0 + 1 >= mx or y0 + 1 >= my or z0 + 1 >= mz:
+            continue
+        fx, fy, fz = x - x0, y - y0, z - z0
+        d = 0.0
+        gx = gy = gz = 0.0
+        for a in range(2):
+            wa = fx if a else 1.0 - fx
+            da = 1.0 if a else -1.0
+            for b in range(2):
+                wb = fy if b else 1.0 - fy
+                db = 1.0 if b else -1.0
+                for c in range(2):
+                    wc = fz if c else 1.0 - fz
+                    dc = 1.0 if c else -1.0
+                    v = fields[s, x0 + a, y0 + b, z0 + c] * inv_scale
+                    d += wa * wb * wc * v
+                    gx += da * wb * wc * v
+                    gy += wa * db * wc * v
+                    gz += wa * wb * dc * v
+        if d >= max_cells - 1e-6:
+            continue
+        u = d * d / c2
+        if u >= 1.0:
+            cost += c2 / 6.0
+            continue
+        w = (1.0 - u) * (1.0 - u)
+        cost += c2 / 6.0 * (1.0 - (1.0 - u) ** 3)
+        used += 1
+        r = d * res
+        qx = keys[p, 0] * res - centre[0]
+        qy = keys[p, 1] * res - centre[1]
+        qz = keys[p, 2] * res - centre[2]
+        j[0] = qy * gz - qz * gy
+        j[1] = qz * gx - qx * gz
+        j[2] = qx * gy - qy * gx
+        j[3], j[4], j[5] = gx, gy, gz
+        for s1 in range(6):
+            g[s1] += w * j[s1] * r
+            for s2 in range(6):
+                h[s1, s2] += w * j[s1] * j[s2]
+    return h, g, cost, used
+
+
+def _twist(xi: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The rigid motion of a twist: rotation by xi[:3] (axis-angle) about centre, then xi[3:]."""
+    angle = float(np.linalg.norm(xi[:3]))
+    r = np.eye(3)
+    if angle > 1e-12:
+        k = xi[:3] / angle
+        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        r = np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
+    out = np.eye(4)
+    out[:3, :3] = r
+    out[:3, 3] = centre - r @ centre + xi[3:]
     return out
+
+
+def side_of(normals: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """Which of the SIDES each free-side normal (b frame) faces once turned into a's frame; -1 for none."""
+    n = normals @ np.asarray(rotation).T
+    signed = np.concatenate([n, -n], axis=1)[:, [0, 3, 1, 4, 2, 5]]
+    out = np.argmax(signed, axis=1)
+    out[np.abs(normals).sum(axis=1) == 0] = -1
+    return out.astype(np.int64)
+
+
+@dataclass(frozen=True)
+class FieldFit:
+    """field_fit's result: the transform and how well b's surfaces lie on a's under it."""
+
+    transform: np.ndarray
+    used: int
+    """Points within FIELD_CELLS of a same-facing surface of a (the overlap the fit rests on)."""
+    rms_m: float
+    """Robust (Tukey) root mean square distance of those points to a's surfaces, metres."""
+
+
+def field_fit(target_cells: np.ndarray, target_offset: np.ndarray, resolution: float, threshold: int,
+              source: np.ndarray, source_normals: np.ndarray, t: np.ndarray, iterations: int = 12,
+              tukey_cells=TUKEY_CELLS, max_step_cells: float = 0.5) -> FieldFit:
+    """Sub-cell 6-DoF refinement: Levenberg-Marquardt on the distance (trilinear) from the moved
+    source points (b's occupied cells, metres) to the centres of a's occupied cells that face the
+    same way (source_normals: their free-side normals, see free_sides), Tukey-weighted at each scale
+    of tukey_cells in turn (wide first, so that a start a cell or two off is still drawn in); a point
+    beyond FIELD_CELLS of any such cell (outside the overlap) does not count. Facing matters: where
+    one map saw a wall from one side and the other from the other, the unsigned distance pulls the
+    two sides together. Each step is held within max_step_cells at the points' extent and taken
+    only when it lowers the cost, and the result is t itself unless it fits better at the last
+    scale: the fit never makes t worse by its own measure."""
+    t = np.asarray(t, dtype=np.float64).copy()
+    source = np.ascontiguousarray(source, dtype=np.float64)
+    offset = np.asarray(target_offset, dtype=np.int64)
+    none = FieldFit(t, 0, float("inf"))
+    if len(source) == 0 or not (np.all(np.isfinite(t)) and np.all(np.isfinite(source))):
+        return none
+    keys = apply(t, source) / resolution - offset
+    if not np.all(np.isfinite(keys)):
+        return none
+    margin = FIELD_CELLS + 2
+    shape = np.array(target_cells.shape)
+    lo = np.maximum(np.floor(keys.min(axis=0)).astype(np.int64) - margin, 0)
+    hi = np.minimum(np.ceil(keys.max(axis=0)).astype(np.int64) + margin + 1, shape)
+    if np.any(hi - lo < 2):
+        return none
+    fields = facing_fields(target_cells, threshold, lo, hi - lo, float(FIELD_CELLS))
+    origin = (lo + offset) * resolution  # metres of the fields' cell [0, 0, 0]
+    sides = side_of(np.asarray(source_normals, dtype=np.float64), t[:3, :3])
+
+    def normal_equations(tt, tukey):
+        moved = apply(tt, source)
+        k = np.ascontiguousarray(moved / resolution - offset - lo)
+        centre = moved.mean(axis=0)
+        h, g, cost, used = _field_normal_equations(fields, k, sides, centre - origin, resolution, tukey,
+                                                   float(FIELD_CELLS))
+        return h, g, cost, used, centre
+
+    scales = np.atleast_1d(np.asarray(tukey_cells, dtype=np.float64))
+    extent = max(float(np.abs(apply(t, source) - apply(t, source).mean(axis=0)).max()), resolution)
+    start = t
+    for tukey in scales:
+        t = _levenberg_marquardt(lambda tt, k=tukey: normal_equations(tt, k), t, iterations,
+                                 extent, max_step_cells * resolution)
+    _, _, cost, used, _ = normal_equations(t, scales[-1])
+    _, _, start_cost, start_used, _ = normal_equations(start, scales[-1])
+    if start_cost <= cost:
+        t, cost, used = start, start_cost, start_used
+    counted = int(np.sum(sides >= 0))
+    rms = float(np.sqrt(6.0 * cost / max(1, counted))) * resolution if used else float("inf")
+    return FieldFit(t, int(used), rms)
+
+
+def _levenberg_marquardt(normal_equations, t: np.ndarray, iterations: int, extent: float,
+                         limit: float) -> np.ndarray:
+    """t improved by damped Gauss-Newton steps (left twists about the points' centre) on
+    normal_equations(t) -> (H, g, cost, used, centre); a step reaches at most limit metres at the
+    points' extent and is kept only when it lowers the cost."""
+    h, g, cost, used, centre = normal_equations(t)
+    damping = 1e-3
+    for _ in range(iterations):
+        if used < 6:
+            break
+        scale = np.sqrt(np.maximum(np.diag(h), 1e-12))
+        try:
+            step = -np.linalg.solve(h + damping * np.diag(scale ** 2) + 1e-12 * np.eye(6), g)
+        except np.linalg.LinAlgError:
+            break
+        reach = np.linalg.norm(step[:3]) * extent + np.linalg.norm(step[3:])
+        if reach > limit:
+            step *= limit / reach
+        trial = _twist(step, centre) @ t
+        h2, g2, cost2, used2, centre2 = normal_equations(trial)
+        if cost2 < cost:
+            t, h, g, cost, used, centre = trial, h2, g2, cost2, used2, centre2
+            damping = max(damping / 3.0, 1e-6)
+            if reach < 0.05 * limit:
+                break
+        else:
+            damping *= 4.0
+            if damping > 1e4:
+                break
+    return t

@@ -20,10 +20,15 @@ no accepted pair beyond 0.15 m, 0 wrong, more successes than Open3D in every ban
 
 Usage: scripts/bench merge [--seed S] [--worlds N] [--per-world K] [--references K] [--pairs N]
        [--far N] [--robust res0.05,res0.2,lift1,flip0.1] [--variants coopd] [--no-open3d] [--out PATH]
-Tables on stderr, JSON on stdout and in out/bench/merge.json.
+       [--cache DIR]
+Tables on stderr, JSON on stdout and in out/bench/merge.json. The pairs depend only on the seed and
+the counts, so --cache DIR keeps them (one .npz per set of arguments) and a repeated run skips the
+ray-casting (a quarter of the run).
 """
 
 import argparse
+import hashlib
+import io
 import json
 import secrets
 import sys
@@ -35,6 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coopd.geometry import rotation_angle_deg  # noqa: E402
+from coopd.grid import OccupancyGrid  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
 from coopd.merging.pair import merge_pair, prepare  # noqa: E402
 from coopd.merging.params import VARIANTS, coopd_params  # noqa: E402
@@ -133,6 +139,53 @@ def build_pairs(args, seed: int) -> list[dict]:
                         "b": p.b, "a_from_b": p.a_from_b, "overlap": p.overlap, "shift_m": None,
                         "far": k >= args.pairs})
     return out
+
+
+PAIR_FIELDS = ("set", "world", "seed", "variant", "overlap", "shift_m", "far")
+CACHE_VERSION = 1
+
+
+def cache_path(args, seed: int) -> Path:
+    """Where --cache keeps the pairs these arguments draw."""
+    drawn = (CACHE_VERSION, seed, args.worlds, args.per_world, args.references, args.pairs, args.far,
+             args.robust)
+    return args.cache / f"merge_pairs-{hashlib.sha1(repr(drawn).encode()).hexdigest()[:12]}.npz"
+
+
+def save_pairs(pairs: list[dict], path: Path) -> None:
+    """The pairs as one .npz (grids stored once even when several pairs share map A), atomically."""
+    grids: dict[int, int] = {}
+    arrays = {}
+    for k, p in enumerate(pairs):
+        for side in ("a", "b"):
+            g = p[side]
+            if id(g) not in grids:
+                n = grids[id(g)] = len(grids)
+                arrays |= {f"g{n}_cells": g.cells, f"g{n}_offset": g.offset,
+                           f"g{n}_res": np.float64(g.resolution)}
+            arrays[f"p{k}_{side}"] = np.int64(grids[id(g)])
+        arrays[f"p{k}_truth"] = p["a_from_b"]
+    arrays["meta"] = np.array(json.dumps([{f: p[f] for f in PAIR_FIELDS if f in p} for p in pairs]))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, buf.getvalue())
+
+
+def load_pairs(path: Path) -> list[dict]:
+    """Pairs written by save_pairs (no pickle)."""
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+        grids = {}
+
+        def grid(n: int) -> OccupancyGrid:
+            if n not in grids:
+                grids[n] = OccupancyGrid(z[f"g{n}_cells"].copy(), float(z[f"g{n}_res"]),
+                                         z[f"g{n}_offset"].copy())
+            return grids[n]
+
+        return [m | {"a": grid(int(z[f"p{k}_a"])), "b": grid(int(z[f"p{k}_b"])),
+                     "a_from_b": z[f"p{k}_truth"].copy()} for k, m in enumerate(meta)]
 
 
 def run_coopd(pairs, name: str) -> list[dict]:
@@ -263,6 +316,8 @@ def parse_args(argv=None):
     ap.add_argument("--variants", default="coopd", help=f"coopd variants ({', '.join(VARIANTS)})")
     ap.add_argument("--no-open3d", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("out/bench/merge.json"))
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="directory keeping the pairs between runs with the same seed and counts")
     args = ap.parse_args(argv)
     for v in filter(None, args.variants.split(",")):
         if v not in VARIANTS:
@@ -277,7 +332,14 @@ def main(argv=None) -> dict:
     seed = args.seed if args.seed is not None else secrets.randbelow(1_000_000)
     print(f"merge bench: --seed {seed} (repeat this run with it)", file=sys.stderr)
     t0 = time.perf_counter()
-    pairs = build_pairs(args, seed)
+    cached = cache_path(args, seed) if args.cache else None
+    if cached is not None and cached.exists():
+        pairs = load_pairs(cached)
+        print(f"  pairs from {cached}", file=sys.stderr)
+    else:
+        pairs = build_pairs(args, seed)
+        if cached is not None:
+            save_pairs(pairs, cached)
     gen_s = time.perf_counter() - t0
     worlds = sorted({p["world"] for p in pairs if p["set"] == "fresh"})
     for w in worlds:

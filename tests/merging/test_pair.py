@@ -42,3 +42,17 @@ def test_merge_pair_refuses_empty_and_featureless_maps_with_a_reason():
     for a, b in [(empty, empty), (free, free), (empty, free)]:
         r = merge_pair(a, b, coopd_params())
         assert not r.accepted and r.reason
+
+
+def test_merge_pair_registers_to_a_fraction_of_a_cell(near_pair):
+    """With the sub-cell fit after ICP, b's occupied cells land within a third of a cell (mean) of
+    where the true transform puts them."""
+    from coopd.geometry import apply
+
+    r = merge_pair(near_pair.a, near_pair.b, coopd_params())
+    assert r.accepted, r.reason
+    b = near_pair.b
+    points = (np.argwhere(b.cells >= 50) + b.offset) * b.resolution
+    moved = np.linalg.norm(apply(r.transform, points) - apply(near_pair.a_from_b, points), axis=1).mean()
+    print(f"mean displacement {moved:.4f} m, {_errors(r.transform, near_pair.a_from_b)[0]:.3f} deg")
+    assert moved <= b.resolution / 3

@@ -57,6 +57,24 @@ def test_a_bounded_fresh_seed_run_prints_its_seed_and_repeats(tmp_path, capsys):
     assert [r["overlap"] for r in again["rows"]] == [r["overlap"] for r in rows]
 
 
+def test_cached_pairs_give_the_same_run(tmp_path, capsys):
+    """--cache: the first run keeps the pairs it drew, the second reads them back and merges the same maps."""
+    argv = ["--seed", "5", "--worlds", "1", "--per-world", "1", "--references", "0", "--far", "0",
+            "--robust", "flip0.1", "--no-open3d", "--out", str(tmp_path / "merge.json"),
+            "--cache", str(tmp_path / "cache")]
+    first = merge.main(argv)
+    assert "pairs from" not in capsys.readouterr().err
+    assert len(list((tmp_path / "cache").glob("merge_pairs-*.npz"))) == 1
+    again = merge.main(argv)
+    assert "pairs from" in capsys.readouterr().err
+    keep = ("set", "world", "seed", "variant", "overlap", "shift_m", "far", "accepted", "rot_err_deg",
+            "mean_disp_m", "max_disp_m", "score", "reason")
+    def same(rows):
+        return [{k: r[k] for k in keep} for r in rows]
+
+    assert same(again["rows"]) == same(first["rows"])
+
+
 def test_bad_arguments_are_refused():
     with pytest.raises(SystemExit):
         merge.parse_args(["--variants", "nonesuch"])
