@@ -134,6 +134,7 @@ class Merger:
         self.vehicle_id = vehicle_id
         self.settings = settings
         self.sources = sources
+        """Both frozen: to change one field, replace the whole (dataclasses.replace), as benches do."""
         self.budget = budget
         self.merge_fn = merge_fn
         """coopd.merging.merge_all, or None in a build without it (find_merge_all)."""
@@ -284,23 +285,9 @@ class Merger:
                 sizes = [local_known + g.counts().known for g in others]
                 contest = self.book.to_contest(vids, hints, sizes, s.recheck_growth)
                 held: set[int] = set()
-                kwargs = {}
-                if s.confirm_before_fusing:
-                    def hold(i: int, r) -> bool:
-                        if self.book.holds(vids[i], r, sizes[i], s.recheck_growth):
-                            held.add(vids[i])
-                            return True
-                        return False
-
-                    kwargs["hold"] = hold
-                if any(hints):
-                    kwargs["hints"] = hints
-                if hints_only:
-                    kwargs["hints_only"] = hints_only
-                if contest:
-                    kwargs["contest"] = contest
-                    self.counters["rechecks"] += len(contest)
-                result = self.merge_fn(local_grid, others, s.params, **kwargs)
+                options = self._merge_options(vids, sizes, hints, hints_only, contest, held)
+                self.counters["rechecks"] += len(contest)
+                result = self.merge_fn(local_grid, others, s.params, **options)
                 del others
                 merged = result.global_map
                 results = zip(vids, result.results, strict=True)
@@ -323,6 +310,30 @@ class Merger:
             f"{len(accepted)} of {len(infos)} received maps merged {accepted} (local v{local_version}, "
             f"{rounds}); global {'x'.join(map(str, merged.shape))} cells"
         )
+
+    def _merge_options(self, vids: list[int], sizes: list[int], hints: list[list], hints_only: frozenset[int],
+                       contest: frozenset[int], held: set[int]) -> dict:
+        """merge_all's keyword arguments, each only when it says something: hold (with
+        confirm_before_fusing: FitBook.holds, collecting the held vehicle ids in `held`), hints,
+        hints_only (searches deferred to a peer) and contest (maps rechecked)."""
+        options = {}
+        if self.settings.confirm_before_fusing:
+            recheck_growth = self.settings.recheck_growth
+
+            def hold(i: int, r) -> bool:
+                if self.book.holds(vids[i], r, sizes[i], recheck_growth):
+                    held.add(vids[i])
+                    return True
+                return False
+
+            options["hold"] = hold
+        if any(hints):
+            options["hints"] = hints
+        if hints_only:
+            options["hints_only"] = hints_only
+        if contest:
+            options["contest"] = contest
+        return options
 
     def _confirm_settled(self, stored: list) -> tuple[str, str]:
         """No map changed since the merge that held maps provisional: the pairs settled. A search
