@@ -26,31 +26,34 @@ the global map (merge_all(hold=...)) and not published until a recheck on grown 
 or the maps stop growing. Early wrong fits then never reach the global map. A merge that finds no
 map changed since the one that held fits (the maps settled) confirms them without searching again
 (the search is deterministic) and fuses them into the global map.
+
+Reading the code: Merger.run is the thread's loop (when to merge: MergeTrigger, skip_as_unchanged);
+Merger.merge_once / _merge is one merge step. It is configured by MergerSettings and reads its maps
+through MergeSources; what it keeps between merges is owned by coopd.daemon.merge_state (FitBook: a
+PairRecord per other vehicle; ResultPublisher; GlobalMapSlot) and every decision on it is a pure
+function of coopd.daemon.merge_rules.
 """
 
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable
 
 import numpy as np
 
+from coopd.daemon import merge_rules as rules
 from coopd.daemon.budget import BudgetExceeded, MemoryBudget
-from coopd.daemon.threads import WorkerProgress
-from coopd.geometry import rotation_angle_deg
-from coopd.grid import OCCUPIED_THRESHOLD, OccupancyGrid, fuse_transformed
-from coopd.sharing.wire import (
-    DEFAULT_LIMITS,
-    EDGE_FULL,
-    MAX_EDGES,
-    DecodeLimits,
-    MapMeta,
-    MergeEdge,
-    MergeResultMessage,
-    decode_map,
-    peek,
+from coopd.daemon.merge_state import (
+    FitBook,
+    GlobalMapSlot,
+    MergerSettings,
+    MergeSources,
+    MergeTrigger,
+    ResultPublisher,
 )
+from coopd.daemon.threads import WorkerProgress
+from coopd.grid import OCCUPIED_THRESHOLD, OccupancyGrid, fuse_transformed
+from coopd.sharing.wire import MapMeta, MergeEdge, decode_map, peek
 
 log = logging.getLogger("coopd.daemon")
 
@@ -59,10 +62,6 @@ PROGRESS_NAME = "merging"
 """The merging thread's name in the watchdog's WorkerProgress."""
 BEAT_PERIOD_S = 1.0
 """The idle merging thread wakes at least this often to show it is alive."""
-SETTLED_GROWTH = 1.01
-"""A pair whose known cells grew less than this since the last merge has settled (the flight is over)."""
-SETTLED_RECHECK = 1.05
-"""A settled pair decided on maps this much smaller is searched once more, on the final maps."""
 SCRATCH_BYTES_PER_CELL = 12
 """Merge scratch budgeted per input cell (local + received): the local snapshot and decoded
 received maps (1 B each) plus merge_all's own peak, measured with tracemalloc at 5.7-8.5 B per
@@ -111,111 +110,54 @@ def offset_summary(transform) -> dict:
     }
 
 
+def offset_entry(result, held: bool) -> dict:
+    """One input map's result as status merges.offsets shows it (held: provisional)."""
+    return {"accepted": bool(result.accepted), "provisional": held, "score": round(float(result.score), 4),
+            "reason": str(result.reason), "method": rules.method_of(result),
+            **offset_summary(result.transform)}
+
+
 class Merger:
-    """Owns the global map and the merge counters; run() is the merging thread's loop."""
+    """The merging thread: run() decides when to merge (MergeTrigger), merge_once() merges; it owns
+    the global map (GlobalMapSlot), the per-vehicle fits (FitBook) and the merge counters."""
 
     def __init__(
         self,
         vehicle_id: int,
-        local_snapshot: Callable[[], tuple[OccupancyGrid, int]],
-        received_maps: Callable[[], list],
+        settings: MergerSettings,
+        sources: MergeSources,
         budget: MemoryBudget,
-        period_s: float,
-        enabled: bool = True,
         merge_fn: Callable | None = None,
-        params=None,
-        limits: DecodeLimits = DEFAULT_LIMITS,
-        min_gap_s: float = 0.0,
-        distributed: bool = True,
-        peer_results: Callable[[], list] | None = None,
-        publish_results: Callable[[MergeResultMessage], None] | None = None,
-        local_version: Callable[[], int] | None = None,
-        settle_s: float = 0.0,
-        defer_full_s: float = 0.0,
-        recheck_growth: float | None = 1.3,
-        confirm_before_fusing: bool = False,
         progress: WorkerProgress | None = None,
         start_error: str | None = None,
     ):
         self.vehicle_id = vehicle_id
+        self.settings = settings
+        self.sources = sources
+        """Both frozen: to change one field, replace the whole (dataclasses.replace), as benches do."""
+        self.budget = budget
+        self.merge_fn = merge_fn
+        """coopd.merging.merge_all, or None in a build without it (find_merge_all)."""
         self.progress = progress if progress is not None else WorkerProgress([PROGRESS_NAME])
         """The merging thread beats here every loop and merges under working() (watchdog health)."""
         self.start_error = start_error
         """Why merging could not start (e.g. an ImportError inside coopd.merging), for status."""
-        self.local_snapshot = local_snapshot
-        self.received_maps = received_maps
-        self.budget = budget
-        self.period_s = period_s
-        self.enabled = enabled
-        self.merge_fn = merge_fn
-        self.params = params
-        self.limits = limits
+        self.trigger = MergeTrigger()
+        self.book = FitBook()
+        self.publisher = ResultPublisher(vehicle_id)
+        self.global_slot = GlobalMapSlot(vehicle_id, budget)
         self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0, "unchanged": 0,
                          "full_registrations": 0, "hinted_own": 0, "hinted_peer": 0, "hint_rejected": 0,
                          "rechecks": 0}
         self.cpu_s = 0.0
         """CPU time of the merging thread inside merges (time.thread_time): the work the bench sums."""
-        self.distributed = distributed
-        """Use peers' merge results as hints and publish ours; off: own warm start only."""
-        self.peer_results = peer_results
-        self.publish_results = publish_results
-        self._accepted: dict[int, np.ndarray] = {}
-        """Vehicle id -> last accepted transform of its map frame into ours (the own hints)."""
-        self._result_version = 0
-        self._published: dict[int, np.ndarray] = {}
-        """Vehicle id -> transform we last published: an unchanged set is not published again (a
-        new version would make every peer merge again, and their answers make us merge again)."""
-        self.defer_full_s = defer_full_s
-        """Distributed: a map's full search waits this long for the swarm's lowest vehicle id to
-        publish it (then validating its result is enough); 0: never wait."""
-        self.recheck_growth = recheck_growth
-        """A merged map is searched again, its known transforms competing, once the known cells of it
-        and our map grew this much since it was last decided: a transform accepted on small early maps
-        of a symmetric building (a 180-degree flip, a slide along a corridor) is not kept for good.
-        None: never re-searched, neither grown nor settled (the rules before rechecks, for benches);
-        contested maps still only compete."""
-        self._decided_at: dict[int, int] = {}
-        """Vehicle id -> known cells of its map and ours when its transform was last decided."""
-        self._last_size: dict[int, int] = {}
-        """Vehicle id -> known cells of its map and ours at the last merge (to see the maps settle)."""
-        self._contested: set[int] = set()
-        """Vehicles whose last full search found two fits (ambiguous): their hints only compete."""
-        self.confirm_before_fusing = confirm_before_fusing
-        """A fit newly found by a search stays out of the global map (provisional) until a recheck on
-        maps recheck_growth times larger finds it again or the pair stops growing."""
-        self._provisional: set[int] = set()
-        """Vehicles whose accepted transform is provisional: reported, held out of the global map."""
-        self._held_inputs: tuple | None = None
-        """inputs() of the merge that left maps provisional: the same again means they settled."""
-        self._edges: dict[int, MergeEdge] = {}
-        """Vehicle id -> edge of its accepted transform at the last merge (published once confirmed)."""
-        self._first_seen: dict[int, float] = {}
-        self._unmerged: set[int] = set()
-        self._deferring = False
-        """The last merge left a map's full search to a peer: merge again on the period even if
-        nothing changed, so that the search runs here once defer_full_s is over."""
-        """Vehicles whose maps the last merge left out (refused or deferred)."""
-        self.local_version = local_version
-        """The local map's version without copying it; given, a merge whose inputs (this and every
-        received map's version) equal those of the last merge done is skipped, counted "unchanged"."""
-        self._merged_inputs: tuple | None = None
         self.last: dict | None = None
+        """The last merge's outcome, detail, reason, seconds and time."""
         self.offsets: dict[int, dict] = {}
-        self._global: tuple[OccupancyGrid, MapMeta] | None = None
-        self._cv = threading.Condition()
-        self._requested = 0
-        self._urgent = False
-        self.min_gap_s = min_gap_s
-        """Received maps trigger a merge at most this often (a peer publishes every second)."""
-        self.settle_s = settle_s
-        """A requested merge waits until no request came for this long (the maps of a sharing burst
-        merge together, not the first one alone), but at most max(settle_s, min_gap_s)."""
-        self._pending_since: float | None = None
-        self._last_request_at = 0.0
-        self._completed = 0
-        self._reasons: list[str] = []
-        self._stop = threading.Event()
+        """Vehicle id -> its map's result at the last merge (offset_entry)."""
         self.busy_since: float | None = None
+        self._merged_inputs: tuple | None = None
+        """inputs() of the last merge done (rules.inputs_to_remember): the same again is skipped."""
 
     @property
     def available(self) -> bool:
@@ -224,95 +166,70 @@ class Merger:
     # ------------------------------------------------------------------------------- requests
     def request(self, reason: str, urgent: bool = False) -> int:
         """Ask for a merge (non-blocking); returns the request number. Urgent: skip min_gap_s."""
-        with self._cv:
-            self._requested += 1
-            self._urgent |= urgent
-            self._last_request_at = time.monotonic()
-            if self._pending_since is None:
-                self._pending_since = self._last_request_at
-            if len(self._reasons) < 16:
-                self._reasons.append(reason)
-            self._cv.notify_all()
-            return self._requested
+        return self.trigger.request(reason, urgent)
 
     def merge_now(self, timeout_s: float) -> dict:
         """Request a merge and wait for its outcome (coopctl merge-now)."""
-        if not self.enabled:
+        if not self.settings.enabled:
             return {"outcome": "failed", "detail": "merging is disabled in the configuration"}
         if not self.available:
             return {"outcome": "failed", "detail": self.status()["state"]}
         ticket = self.request("merge-now", urgent=True)
-        with self._cv:
-            done = self._cv.wait_for(lambda: self._completed >= ticket or self._stop.is_set(), timeout_s)
-            if not done or self.last is None:
-                return {"outcome": "queued", "detail": f"merge still running after {timeout_s:.0f} s"}
-            return {k: self.last[k] for k in ("outcome", "detail", "seconds")}
+        done = self.trigger.wait_completed(ticket, timeout_s)
+        last = self.last
+        if not done or last is None:
+            return {"outcome": "queued", "detail": f"merge still running after {timeout_s:.0f} s"}
+        return {k: last[k] for k in ("outcome", "detail", "seconds")}
+
+    def on_peer_result(self) -> None:
+        """A peer's merge result arrived: merge again if it may bring a map we left out."""
+        if self.settings.distributed and self.book.left_out:
+            self.request("peer result")
 
     def stop(self) -> None:
-        self._stop.set()
-        with self._cv:
-            self._cv.notify_all()
+        self.trigger.stop()
 
     # ----------------------------------------------------------------------------------- loop
     def run(self) -> None:
         """Merge every period_s, on request (settled, at most one merge per min_gap_s), at once for
         merge-now; skip a merge whose inputs are those of the last one done."""
-        next_periodic = time.monotonic() + self.period_s
+        next_periodic = time.monotonic() + self.settings.period_s
         not_before = 0.0
-        while not self._stop.is_set():
-            with self._cv:
-                while not self._stop.is_set():
-                    self.progress.beat(PROGRESS_NAME)
-                    now = time.monotonic()
-                    pending = self._requested > self._completed
-                    due = max(not_before, self._settled_at()) if pending else next_periodic
-                    if self._urgent or now >= due or now >= next_periodic:
-                        break
-                    self._cv.wait(min(BEAT_PERIOD_S, max(0.0, min(due, next_periodic) - now)))
-                if self._stop.is_set():
-                    return
-                ticket = self._requested
-                self._pending_since = None
-                urgent, self._urgent = self._urgent, False
-                reasons, self._reasons = self._reasons or ["period"], []
+        while not self.trigger.stopped:
+            due = self.trigger.wait_due(next_periodic, not_before, self.settings,
+                                        lambda: self.progress.beat(PROGRESS_NAME), BEAT_PERIOD_S)
+            if due is None:
+                return
+            ticket, urgent, reasons = due
             if time.monotonic() >= next_periodic:
-                next_periodic = time.monotonic() + self.period_s
-            if self.enabled and self.available:
+                next_periodic = time.monotonic() + self.settings.period_s
+            if self.settings.enabled and self.available:
                 inputs = self.inputs()
-                same = inputs is not None and inputs == self._merged_inputs
-                if not urgent and same and not self._deferring and not self._provisional:
-                    self.counters["unchanged"] += 1  # merging is deterministic: the same global map again
+                if rules.skip_as_unchanged(urgent, inputs, self._merged_inputs, self.book.deferring,
+                                           self.book.holding):
+                    self.counters["unchanged"] += 1
                 else:
                     if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
-                        # with nothing left out, peers' results no longer count (inputs() drops them)
-                        done_with_all = inputs is not None and not self._unmerged
-                        self._merged_inputs = (*inputs[:2], ()) if done_with_all else inputs
-                    not_before = time.monotonic() + self.min_gap_s
-                    if self._provisional:  # merge again soon: the maps grew, or they settled
+                        self._merged_inputs = rules.inputs_to_remember(inputs, self.book.left_out)
+                    not_before = time.monotonic() + self.settings.min_gap_s
+                    if self.book.holding:  # merge again soon: the maps grew, or they settled
                         self.request("confirm")
-            with self._cv:
-                self._completed = max(self._completed, ticket)
-                self._cv.notify_all()
-
-    def _settled_at(self) -> float:
-        """When the pending requests have settled: settle_s after the last one, capped after the first."""
-        if self._pending_since is None:
-            return 0.0
-        cap = self._pending_since + max(self.settle_s, self.min_gap_s)
-        return min(self._last_request_at + self.settle_s, cap)
+            self.trigger.complete(ticket)
 
     def inputs(self) -> tuple | None:
         """(local version, (vehicle id, version) of every received map, and of every peer's merge
         results when distributed and a map was left out: a new result may merge it); None
         without local_version."""
-        if self.local_version is None:
+        src = self.sources
+        if src.local_version is None:
             return None
         results = ()
-        if self.distributed and self.peer_results is not None and self._unmerged:
-            results = tuple(sorted((r.vehicle_id, r.version) for r in self.peer_results()))
-        return (self.local_version(), tuple(sorted((m.vehicle_id, m.version) for m in self.received_maps())),
+        if self.settings.distributed and src.peer_results is not None and self.book.left_out:
+            results = tuple(sorted((r.vehicle_id, r.version) for r in src.peer_results()))
+        return (src.local_version(), tuple(sorted((m.vehicle_id, m.version) for m in src.received_maps())),
                 results)
 
+    # ------------------------------------------------------------------------------ the merge
     def merge_once(self, reason: str = "request") -> dict:
         """One merge of the local map with every received map; returns and records the outcome."""
         t0 = time.monotonic()
@@ -342,67 +259,46 @@ class Merger:
         return self.last
 
     def _merge(self) -> tuple[str, str]:
-        stored = self.received_maps()
+        """Register and fuse every received map (or confirm the held ones if nothing changed since
+        they were held); ("done" | "nothing" | "deferred", detail)."""
+        stored = self.sources.received_maps()
         if not stored:
-            self._set_global(None)
+            self.global_slot.clear()
             return "nothing", "no received maps: the global map is the local map"
         inputs = self.inputs()
-        unchanged = inputs is not None and inputs == self._held_inputs
-        if self._provisional and self._global is not None and unchanged:
+        has_global = self.global_slot.get() is not None
+        if rules.confirms_without_search(self.book.holding, has_global, inputs, self.book.held_inputs):
             return self._confirm_settled(stored)
+        s = self.settings
         infos = sorted(((m, peek(m.data)) for m in stored), key=lambda mi: mi[0].vehicle_id)
         for _, info in infos:
-            info.check(self.limits)
-        local_grid, local_version = self.local_snapshot()
-        input_cells = local_grid.size + sum(info.cells for _, info in infos)
-        need = SCRATCH_BYTES_PER_CELL * input_cells
+            info.check(s.limits)
+        local_grid, local_version = self.sources.local_snapshot()
+        need = SCRATCH_BYTES_PER_CELL * (local_grid.size + sum(info.cells for _, info in infos))
         try:
             with self.budget.scratch("merge-scratch", need):
                 vids = [m.vehicle_id for m, _ in infos]
-                others = [decode_map(m.data, self.limits)[0] for m, _ in infos]
+                others = [decode_map(m.data, s.limits)[0] for m, _ in infos]
                 hints = self._hints(vids)
-                hints_only = self._deferred(vids, hints)
-                self._deferring = bool(hints_only)
+                hints_only = self.book.deferred(self.vehicle_id, vids, hints, s, time.monotonic())
                 local_known = local_grid.counts().known
                 sizes = [local_known + g.counts().known for g in others]
-                contest = self._to_contest(vids, hints, sizes)
+                contest = self.book.to_contest(vids, hints, sizes, s.recheck_growth)
                 held: set[int] = set()
-                kwargs = {}
-                if self.confirm_before_fusing:
-                    def hold(i: int, r) -> bool:
-                        if self._provisional_after(vids[i], r, sizes[i]):
-                            held.add(vids[i])
-                            return True
-                        return False
-
-                    kwargs["hold"] = hold
-                if any(hints):
-                    kwargs["hints"] = hints
-                if hints_only:
-                    kwargs["hints_only"] = hints_only
-                if contest:
-                    kwargs["contest"] = contest
-                    self.counters["rechecks"] += len(contest)
-                result = self.merge_fn(local_grid, others, self.params, **kwargs)
+                options = self._merge_options(vids, sizes, hints, hints_only, contest, held)
+                self.counters["rechecks"] += len(contest)
+                result = self.merge_fn(local_grid, others, s.params, **options)
                 del others
                 merged = result.global_map
-                offsets = {}
-                for vid, r in zip(vids, result.results, strict=True):
-                    offsets[vid] = {"accepted": bool(r.accepted), "provisional": vid in held,
-                                    "score": round(float(r.score), 4),
-                                    "reason": str(r.reason), "method": getattr(r, "method", "full"),
-                                    **offset_summary(r.transform)}
+                results = zip(vids, result.results, strict=True)
+                offsets = {vid: offset_entry(r, vid in held) for vid, r in results}
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
         self._count(result)
-        self._confirmations(vids, result.results, held, sizes)
-        self._decide(vids, result.results, sizes)
-        self._unmerged = {vid for vid, r in zip(vids, result.results, strict=True) if not r.accepted}
-        edges = self._remember([m for m, _ in infos], result.results, local_version)
-        self._edges = {e.b: e for e in edges}
-        self._held_inputs = inputs if held else None
+        edges = self.book.record(self.vehicle_id, [m for m, _ in infos], result.results, sizes, held, inputs,
+                                 local_version)
         self._publish([e for e in edges if e.b not in held])
-        if not self._install_global(merged):
+        if not self.global_slot.install(merged):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
         self.offsets = offsets
         accepted = [v for v, o in offsets.items() if in_global_map(o)]
@@ -415,209 +311,88 @@ class Merger:
             f"{rounds}); global {'x'.join(map(str, merged.shape))} cells"
         )
 
+    def _merge_options(self, vids: list[int], sizes: list[int], hints: list[list], hints_only: frozenset[int],
+                       contest: frozenset[int], held: set[int]) -> dict:
+        """merge_all's keyword arguments, each only when it says something: hold (with
+        confirm_before_fusing: FitBook.holds, collecting the held vehicle ids in `held`), hints,
+        hints_only (searches deferred to a peer) and contest (maps rechecked)."""
+        options = {}
+        if self.settings.confirm_before_fusing:
+            recheck_growth = self.settings.recheck_growth
+
+            def hold(i: int, r) -> bool:
+                if self.book.holds(vids[i], r, sizes[i], recheck_growth):
+                    held.add(vids[i])
+                    return True
+                return False
+
+            options["hold"] = hold
+        if any(hints):
+            options["hints"] = hints
+        if hints_only:
+            options["hints_only"] = hints_only
+        if contest:
+            options["contest"] = contest
+        return options
+
     def _confirm_settled(self, stored: list) -> tuple[str, str]:
         """No map changed since the merge that held maps provisional: the pairs settled. A search
         would find the same fits again, so confirm them and fuse them into the global map."""
-        held = [m for m in sorted(stored, key=lambda m: m.vehicle_id) if m.vehicle_id in self._provisional]
-        grid = self._global[0]
+        provisional = set(self.book.provisional())
+        held = [m for m in sorted(stored, key=lambda m: m.vehicle_id) if m.vehicle_id in provisional]
+        grid = self.global_slot.get()[0]
         need = SCRATCH_BYTES_PER_CELL * (grid.size + sum(peek(m.data).cells for m in held))
-        threshold = getattr(self.params, "occupied_threshold", OCCUPIED_THRESHOLD)
+        threshold = getattr(self.settings.params, "occupied_threshold", OCCUPIED_THRESHOLD)
         try:
             with self.budget.scratch("merge-scratch", need):
                 merged = grid.copy()
                 for m in held:
-                    fuse_transformed(merged, decode_map(m.data, self.limits)[0], self._accepted[m.vehicle_id],
-                                     threshold)
+                    fuse_transformed(merged, decode_map(m.data, self.settings.limits)[0],
+                                     self.book.pair(m.vehicle_id).transform, threshold)
         except BudgetExceeded as e:
             return "deferred", f"over the memory budget: {e}"
-        if not self._install_global(merged):
+        if not self.global_slot.install(merged):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
         for m in held:
             self.offsets[m.vehicle_id] = {**self.offsets[m.vehicle_id], "provisional": False}
             log.info("vehicle %d: provisional merge confirmed (no map changed since it was found); fused "
                      "into the global map", m.vehicle_id)
-        self._provisional, self._held_inputs = set(), None
-        self._publish(list(self._edges.values()))
+        self.book.confirm_all()
+        self._publish(self.book.edges())
         return "done", (f"{len(held)} provisional merges confirmed {[m.vehicle_id for m in held]} (no map "
                         f"changed); global {'x'.join(map(str, merged.shape))} cells")
 
     def _hints(self, vids: list[int]) -> list[list]:
         """Hints per input map: own last accepted transforms, and peers' results when distributed."""
-        from coopd.merging.hints import hints_for
+        from coopd.merging.hints import hints_for  # only merging with merge_all: the build has it
 
         peer = []
-        if self.distributed and self.peer_results is not None:
-            peer = [r for r in self.peer_results() if r.vehicle_id != self.vehicle_id]
-        return hints_for(self.vehicle_id, vids, self._accepted, peer)
-
-    def _deferred(self, vids: list[int], hints: list[list]) -> frozenset[int]:
-        """Input maps whose full search waits for a peer: distributed, a lower vehicle id than ours
-        holds maps too (it searches, we validate its result: the swarm's merge work drops from
-        N(N-1) full searches towards N-1), never merged here, no hint yet, first seen less than
-        defer_full_s ago. Bounded: after that we search ourselves."""
-        if not (self.distributed and self.defer_full_s > 0 and vids) or min(vids) > self.vehicle_id:
-            return frozenset()
-        now = time.monotonic()
-        out = set()
-        for k, vid in enumerate(vids):
-            first = self._first_seen.setdefault(vid, now)
-            if vid not in self._accepted and not hints[k] and now - first < self.defer_full_s:
-                out.add(k)
-        return frozenset(out)
-
-    def _to_contest(self, vids: list[int], hints: list[list], sizes: list[int]) -> frozenset[int]:
-        """Input maps whose hints compete in a full search this time: contested ones; those whose
-        known cells (theirs + ours) grew recheck_growth times since their last decision; and, once
-        the pair stopped growing (SETTLED_GROWTH), those decided on maps SETTLED_RECHECK smaller, so
-        the transform kept after the flight is judged on the final maps (these two never with
-        recheck_growth None)."""
-        out = set()
-        for k, vid in enumerate(vids):
-            if not hints[k]:
-                continue
-            if vid in self._contested or self._grown_or_settled(vid, sizes[k]):
-                out.add(k)
-        return frozenset(out)
-
-    def _grown_or_settled(self, vid: int, size: int) -> bool:
-        """The pair grew recheck_growth times since its decision, or settled on maps SETTLED_RECHECK
-        larger than those it was decided on; never with recheck_growth None."""
-        if self.recheck_growth is None:
-            return False
-        decided = self._decided_at.get(vid, size)
-        settled = self._stopped_growing(vid, size) and size > SETTLED_RECHECK * decided
-        return size >= self.recheck_growth * decided or settled
-
-    def _stopped_growing(self, vid: int, size: int) -> bool:
-        """The pair's known cells grew less than SETTLED_GROWTH since the last merge."""
-        return size < SETTLED_GROWTH * self._last_size.get(vid, 0)
-
-    def _provisional_after(self, vid: int, r, size: int) -> bool:
-        """Whether vid's accepted result r, on maps of `size` known cells (its and ours), is held out
-        of the global map. A new fit from a search is, until the pair stops growing; the same fit
-        found again by a recheck on grown (or settled) maps confirms it; our own provisional
-        transform, validated alone as a hint, stays provisional until the pair settles; a peer's
-        result (peers publish confirmed merges only) is not held."""
-        if not self.confirm_before_fusing:
-            return False
-        from coopd.merging.pair import distinct
-
-        settled = self._stopped_growing(vid, size)
-        method = getattr(r, "method", "full")
-        if method == "hint:peer":
-            return False
-        if method != "full":
-            return vid in self._provisional and not settled
-        before = self._accepted.get(vid)
-        if before is None or distinct(before, np.asarray(r.transform, dtype=np.float64)):
-            return not settled  # a new fit
-        if vid not in self._provisional:
-            return False
-        return not (settled or self._grown_or_settled(vid, size))
-
-    def _confirmations(self, vids: list[int], results: list, held: set[int], sizes: list[int]) -> None:
-        """Log the provisional merges this merge confirmed and keep the set of those still held."""
-        for vid, r, size in zip(vids, results, sizes, strict=True):
-            if vid in self._provisional and r.accepted and vid not in held:
-                log.info("vehicle %d: provisional merge confirmed (%s, maps %.2fx those it was found on); "
-                         "fused into the global map", vid, getattr(r, "method", "full"),
-                         size / max(1, self._decided_at.get(vid, size)))
-        self._provisional = set(held)
-
-    def _decide(self, vids: list[int], results: list, sizes: list[int]) -> None:
-        """Record how each map was decided: a full search sets the size mark and settles or raises
-        a contest (an ambiguous search also drops our own transform of it); a first hint sets the mark."""
-        for k, (vid, r) in enumerate(zip(vids, results, strict=True)):
-            self._last_size[vid] = sizes[k]
-            method = getattr(r, "method", "full")
-            if method == "full":
-                self._decided_at[vid] = sizes[k]
-                if r.accepted:
-                    self._contested.discard(vid)
-                elif getattr(r, "ambiguous", False):
-                    if vid in self._accepted or vid not in self._contested:
-                        log.warning("vehicle %d: its map fits ours two ways (%s); left out until one "
-                                    "fit wins", vid, r.reason)
-                    self._contested.add(vid)
-                    self._accepted.pop(vid, None)
-            elif r.accepted:
-                self._decided_at.setdefault(vid, sizes[k])
-
-    def on_peer_result(self) -> None:
-        """A peer's merge result arrived: merge again if it may bring a map we left out."""
-        if self.distributed and self._unmerged:
-            self.request("peer result")
+        if self.settings.distributed and self.sources.peer_results is not None:
+            peer = [r for r in self.sources.peer_results() if r.vehicle_id != self.vehicle_id]
+        return hints_for(self.vehicle_id, vids, self.book.transforms(), peer)
 
     def _count(self, result) -> None:
         """Merge work by kind: full searches, hints accepted (own / peer) and hints refused."""
-        methods = [getattr(r, "method", "full") for r in result.results]
+        methods = [rules.method_of(r) for r in result.results]
         c = self.counters
         c["full_registrations"] += getattr(result, "full_registrations", methods.count("full"))
         c["hinted_own"] += methods.count("hint:own")
         c["hinted_peer"] += methods.count("hint:peer")
         c["hint_rejected"] += sum(getattr(result, "hints_refused", []))
 
-    def _remember(self, stored: list, results: list, local_version: int) -> list[MergeEdge]:
-        """Keep every accepted transform as the next merge's own hint; return them as edges."""
-        edges = []
-        for m, r in zip(stored, results, strict=True):
-            if not r.accepted:
-                continue
-            t = self._accepted[m.vehicle_id] = np.asarray(r.transform, dtype=np.float64)
-            full = getattr(r, "method", "full") == "full"
-            edges.append(MergeEdge(self.vehicle_id, m.vehicle_id, t, float(np.clip(r.score, 0, 1)),
-                                   float(np.clip(getattr(r, "overlap", 0.0), 0, 1)), int(local_version),
-                                   int(m.version), EDGE_FULL if full else 0))
-        return edges
-
     def _publish(self, edges: list[MergeEdge]) -> None:
-        """Publish our validated merges for peers (only when distributed and there are any)."""
-        if not (self.distributed and self.publish_results is not None and edges):
-            return
-        if not self._changed(edges):
-            return
-        self._published = {e.b: e.transform for e in edges}
-        # increasing across restarts while the clock does: a peer keeps only newer versions
-        self._result_version = max(self._result_version + 1, time.time_ns() // 1000)
-        try:
-            self.publish_results(MergeResultMessage(self.vehicle_id, self._result_version, time.time(),
-                                                    tuple(edges[:MAX_EDGES])))
-        except ValueError as e:
-            log.error("publishing merge results refused: %s", e)
-
-    def _changed(self, edges: list[MergeEdge]) -> bool:
-        """Edges differ from the last published: other vehicles, or a transform moved > 2 cm / 0.2 deg."""
-        if {e.b for e in edges} != set(self._published):
-            return True
-        for e in edges:
-            old = self._published[e.b]
-            moved = float(np.linalg.norm(old[:3, 3] - e.transform[:3, 3]))
-            if moved > 0.02 or rotation_angle_deg(old[:3, :3].T @ e.transform[:3, :3]) > 0.2:
-                return True
-        return False
-
-    def _install_global(self, merged: OccupancyGrid) -> bool:
-        """Make merged the global map, with the next version, if the memory budget holds it."""
-        if not self.budget.reserve("global", merged.size):
-            return False
-        version = (self._global[1].version + 1) if self._global is not None else 1
-        self._set_global((merged, MapMeta(self.vehicle_id, version, time.time())))
-        return True
-
-    def _set_global(self, value) -> None:
-        with self._cv:
-            self._global = value
-        if value is None:
-            self.budget.release("global")
+        """Publish our validated merges for peers (only when distributed and they changed)."""
+        send = self.sources.publish_results
+        if self.settings.distributed and send is not None:
+            self.publisher.publish(edges, send)
 
     # ---------------------------------------------------------------------------------- reads
     def global_map(self) -> tuple[OccupancyGrid, MapMeta] | None:
         """The last merged global map, or None (then the global map is the local map)."""
-        with self._cv:
-            return self._global
+        return self.global_slot.get()
 
     def status(self) -> dict:
-        if not self.enabled:
+        if not self.settings.enabled:
             state = "disabled in the configuration"
         elif not self.available:
             state = NOT_AVAILABLE if self.start_error is None else f"merging: off: {self.start_error}"
@@ -625,16 +400,16 @@ class Merger:
             state = "merging" if self.busy_since is not None else "idle"
         return {
             "available": self.available,
-            "enabled": self.enabled,
+            "enabled": self.settings.enabled,
             "state": state,
             "start_error": self.start_error,
             **self.counters,
             "hinted": self.counters["hinted_own"] + self.counters["hinted_peer"],
             "cpu_s": round(self.cpu_s, 3),
-            "distributed": self.distributed,
+            "distributed": self.settings.distributed,
             "last": self.last,
             "offsets": {str(k): v for k, v in self.offsets.items()},
-            "contested": sorted(self._contested),
-            "provisional": sorted(self._provisional),
-            "global_version": None if self._global is None else self._global[1].version,
+            "contested": self.book.contested(),
+            "provisional": self.book.provisional(),
+            "global_version": self.global_slot.version,
         }

@@ -40,6 +40,7 @@ from coopd.daemon.checkpoint import VERSION_FILE, CheckpointStore, VersionReserv
 from coopd.daemon.config import Config
 from coopd.daemon.control import DEFAULT_MAX_REPLY_BUFFER, BlobReply, CommandFailed, ControlServer
 from coopd.daemon.gcs import GcsReporter, Health
+from coopd.daemon.merge_state import MergerSettings, MergeSources
 from coopd.daemon.merger import Merger, find_merge_all, in_global_map, mergeable_cells
 from coopd.daemon.notify import Notifier, WatchdogPinger
 from coopd.daemon.obstacles import ObstacleReporter
@@ -58,7 +59,6 @@ from coopd.sharing.service import SharingConfig as ServiceSharingConfig
 from coopd.sharing.service import SharingService, wire_verifier
 from coopd.sharing.transport import TransportSettings
 from coopd.sharing.wire import (
-    DecodeLimits,
     MapMeta,
     MergeResultMessage,
     encode_map,
@@ -89,10 +89,6 @@ LATENCY_WINDOW = 2000
 SNAPSHOT_PAD_CELLS = 4
 """Unknown cells kept around the known box of a snapshot (room for the merge's filters)."""
 MERGE_NOW_TIMEOUT_S = 100.0
-MERGE_MIN_GAP_S = 5.0
-"""Maps arriving faster than this (peers publish every second) are merged together, not one by one.
-A received map also waits until no other arrived for one discovery scan period (the peers found in a
-scan deliver within it), so the maps of a swarm's first exchange merge in one go (Merger.settle_s)."""
 SHUTDOWN_JOIN_S = 2.0
 FROM_BUILD = "from-build"
 """Daemon(merge_fn=FROM_BUILD): coopd.merging.merge_all if this build has it (None: not available)."""
@@ -301,22 +297,16 @@ class Daemon:
         )
         self.merger = Merger(
             self.vehicle_id,
-            self.known_snapshot,
-            self._received_maps,
+            MergerSettings.from_config(config),
+            MergeSources(
+                local_snapshot=self.known_snapshot,
+                received_maps=self._received_maps,
+                local_version=lambda: self.mapper.version,
+                peer_results=self._peer_results,
+                publish_results=self._publish_results,
+            ),
             self.budget,
-            config.merging.period_s,
-            enabled=config.merging.enabled,
             merge_fn=self.merge_fn,
-            limits=DecodeLimits(config.sharing.max_map_cells, config.sharing.max_map_bytes),
-            min_gap_s=min(config.merging.period_s, MERGE_MIN_GAP_S),
-            distributed=config.merging.distributed,
-            peer_results=self._peer_results,
-            publish_results=self._publish_results,
-            local_version=lambda: self.mapper.version,
-            settle_s=min(config.sharing.scan_period_s, MERGE_MIN_GAP_S),
-            defer_full_s=config.merging.defer_full_s,
-            recheck_growth=config.merging.recheck_growth,
-            confirm_before_fusing=config.merging.confirm_before_fusing,
             progress=self.progress,
             start_error=self.merge_start_error,
         )

@@ -21,6 +21,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -118,8 +119,9 @@ def main():
         idle = phase(daemon, args.seconds, merging=False)
         grid, version = daemon.known_snapshot()
         received = SimpleNamespace(vehicle_id=2, version=version, data=encode_map(grid, MapMeta(2, version)))
-        daemon.merger.received_maps = lambda: [received]
-        daemon.merger.min_gap_s = 0.0  # back to back, the worst case for mapping
+        merger = daemon.merger
+        merger.sources = replace(merger.sources, received_maps=lambda: [received])
+        merger.settings = replace(merger.settings, min_gap_s=0.0)  # back to back, the worst case for mapping
         merging = phase(daemon, args.seconds, merging=True)
         status = daemon.handle_status({})
     finally:

@@ -38,6 +38,7 @@ sys.path[:0] = [str(ROOT)]
 
 from coopd.daemon.budget import MemoryBudget  # noqa: E402
 from coopd.daemon.config import MergingConfig, SharingConfig  # noqa: E402
+from coopd.daemon.merge_state import MergerSettings, MergeSources  # noqa: E402
 from coopd.daemon.merger import Merger  # noqa: E402
 from coopd.geometry import invert  # noqa: E402
 from coopd.io.cmap import read_cmap_bytes  # noqa: E402
@@ -51,7 +52,7 @@ RULES = {
     "rechecks": (coopd_params(), MergingConfig().recheck_growth, False),
     "new": (coopd_params(), MergingConfig().recheck_growth, MergingConfig().confirm_before_fusing),
 }
-"""Rule set -> (merging params, Merger recheck_growth, confirm_before_fusing); recheck_growth None:
+"""Rule set -> (merging params, MergerSettings recheck_growth, confirm_before_fusing); recheck_growth None:
 no rechecks at all. "rechecks" are session 3's rules, "new" today's defaults."""
 LIMITS = DecodeLimits(SharingConfig().max_map_cells, SharingConfig().max_map_bytes)
 """The daemon's default limits on received maps."""
@@ -175,9 +176,10 @@ def replay_drone(recording: dict, vehicle_id: int, rules: str, tol_m: float, tol
     """One drone's Merger over every snapshot: per other drone its state history and final error."""
     params, recheck_growth, confirm = RULES[rules]
     feed = Feed(recording, vehicle_id)
-    merger = Merger(vehicle_id, feed.local, feed.received, MemoryBudget(BUDGET_BYTES, baseline_bytes=0),
-                    period_s=3600, merge_fn=merge_all, params=params, limits=LIMITS, distributed=False,
-                    recheck_growth=recheck_growth, confirm_before_fusing=confirm)
+    settings = MergerSettings(period_s=3600, params=params, limits=LIMITS, distributed=False,
+                              recheck_growth=recheck_growth, confirm_before_fusing=confirm)
+    merger = Merger(vehicle_id, settings, MergeSources(feed.local, feed.received),
+                    MemoryBudget(BUDGET_BYTES, baseline_bytes=0), merge_fn=merge_all)
     others = [v for v in recording["drones"] if v != vehicle_id]
     pairs = {b: {"history": "", "recorded": 0, "final": "none", "error": None} for b in others}
     """recorded: how many history states belong to recorded snapshots (not the merge to confirm)."""

@@ -4,6 +4,7 @@ switchable between the early and later maps, and a Merger over it."""
 from types import SimpleNamespace
 
 from coopd.daemon.budget import MemoryBudget
+from coopd.daemon.merge_state import MergerSettings, MergeSources
 from coopd.daemon.merger import Merger
 from coopd.sharing.wire import MapMeta, encode_map
 
@@ -26,7 +27,9 @@ class Feed:
                                 data=encode_map(grid, MapMeta(2, self.version)))]
 
 
-def flip_merger(feed, merge_fn, **kw) -> Merger:
-    """Vehicle 1's Merger over feed, not distributed, never merging on its own period."""
-    return Merger(1, feed.local, feed.received, MemoryBudget(256 << 20, baseline_bytes=0), period_s=3600,
-                  merge_fn=merge_fn, distributed=False, **kw)
+def flip_merger(feed, merge_fn, sources: dict | None = None, **settings) -> Merger:
+    """Vehicle 1's Merger over feed (and further `sources`), not distributed unless `settings` say
+    so, never merging on its own period."""
+    return Merger(1, MergerSettings(**{"period_s": 3600, "distributed": False, **settings}),
+                  MergeSources(feed.local, feed.received, **(sources or {})),
+                  MemoryBudget(256 << 20, baseline_bytes=0), merge_fn=merge_fn)

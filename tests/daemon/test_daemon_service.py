@@ -29,6 +29,7 @@ from coopd.daemon.budget import MemoryBudget
 from coopd.daemon.checkpoint import CheckpointStore, VersionReserve
 from coopd.daemon.config import from_dict
 from coopd.daemon.main import main
+from coopd.daemon.merge_state import MergerSettings, MergeSources
 from coopd.daemon.merger import NOT_AVAILABLE, Merger, find_merge_all
 from coopd.daemon.notify import Notifier
 from coopd.daemon.service import FRAME_FILE, FROM_BUILD, Daemon, StartupError, save_map_frame
@@ -398,6 +399,11 @@ def _stored(vid, grid, version=1):
     return SimpleNamespace(vehicle_id=vid, version=version, data=encode_map(grid, MapMeta(vid, version)))
 
 
+def _one_map_sources(**more) -> MergeSources:
+    """A local box map at version 3 and vehicle 2's box map received (`more`: further sources)."""
+    return MergeSources(lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], **more)
+
+
 def test_merger_fuses_accepted_maps_with_their_transform_and_defers_over_budget():
     local = _box_grid()
     t = rigid(rotation_z(np.pi / 2), [3.0, 0.0, 0.0])  # vehicle 5's frame -> ours
@@ -417,7 +423,8 @@ def test_merger_fuses_accepted_maps_with_their_transform_and_defers_over_budget(
 
     received = [_stored(6, _box_grid(offset=(40, 0, 0))), _stored(5, other)]  # merged in vehicle id order
     budget = MemoryBudget(64 << 20, baseline_bytes=0)
-    m = Merger(1, lambda: (local.copy(), 7), lambda: received, budget, period_s=3600, merge_fn=merge_all)
+    sources = MergeSources(lambda: (local.copy(), 7), lambda: received)
+    m = Merger(1, MergerSettings(period_s=3600), sources, budget, merge_fn=merge_all)
     out = m.merge_once("test")
     assert out["outcome"] == "done", out
     merged, meta = m.global_map()
@@ -434,8 +441,8 @@ def test_merger_fuses_accepted_maps_with_their_transform_and_defers_over_budget(
     assert meta.version == 1 and budget.snapshot()["entries"]["global"] == merged.size
     assert "merge-scratch" not in budget.snapshot()["entries"]
     # a budget too small for the decompressed maps: deferred, the last global map is kept
-    tight = Merger(1, lambda: (local.copy(), 7), lambda: received, MemoryBudget(20_000, baseline_bytes=0),
-                   period_s=3600, merge_fn=merge_all)
+    tight = Merger(1, MergerSettings(period_s=3600), sources, MemoryBudget(20_000, baseline_bytes=0),
+                   merge_fn=merge_all)
     out = tight.merge_once("test")
     assert out["outcome"] == "deferred" and "memory budget" in out["detail"]
     assert tight.global_map() is None and tight.counters["deferred"] == 1 and len(calls) == 1
@@ -446,8 +453,7 @@ def test_merger_thread_merges_on_request_and_reports_failures():
         raise RuntimeError("no overlap")
 
     budget = MemoryBudget(64 << 20, baseline_bytes=0)
-    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=3600,
-               merge_fn=broken)
+    m = Merger(1, MergerSettings(period_s=3600), _one_map_sources(), budget, merge_fn=broken)
     runner = threading.Thread(target=m.run, daemon=True)
     runner.start()
     try:
@@ -471,8 +477,9 @@ def test_unchanged_inputs_are_not_merged_again_but_new_versions_and_merge_now_ar
     received = [_stored(2, _box_grid())]
     local = {"version": 3}
     budget = MemoryBudget(64 << 20, baseline_bytes=0)
-    m = Merger(1, lambda: (_box_grid(), local["version"]), lambda: list(received), budget, period_s=0.2,
-               merge_fn=merge_all, local_version=lambda: local["version"])
+    sources = MergeSources(lambda: (_box_grid(), local["version"]), lambda: list(received),
+                           local_version=lambda: local["version"])
+    m = Merger(1, MergerSettings(period_s=0.2), sources, budget, merge_fn=merge_all)
     runner = threading.Thread(target=m.run, daemon=True)
     runner.start()
     try:
@@ -499,8 +506,8 @@ def test_received_maps_merge_once_settled_and_at_most_a_gap_after_the_first():
             SimpleNamespace(accepted=True, transform=np.eye(4), score=1.0, reason="test") for _ in others])
 
     budget = MemoryBudget(64 << 20, baseline_bytes=0)
-    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=3600,
-               merge_fn=merge_all, min_gap_s=1.5, settle_s=0.5)
+    m = Merger(1, MergerSettings(period_s=3600, min_gap_s=1.5, settle_s=0.5), _one_map_sources(), budget,
+               merge_fn=merge_all)
     runner = threading.Thread(target=m.run, daemon=True)
     runner.start()
     try:
@@ -530,8 +537,8 @@ def test_received_maps_merge_at_most_once_per_gap_but_merge_now_at_once():
             SimpleNamespace(accepted=False, transform=np.eye(4), score=0.0, reason="test")])
 
     budget = MemoryBudget(64 << 20, baseline_bytes=0)
-    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=3600,
-               merge_fn=merge_all, min_gap_s=1.0)
+    settings = MergerSettings(period_s=3600, min_gap_s=1.0)
+    m = Merger(1, settings, _one_map_sources(), budget, merge_fn=merge_all)
     runner = threading.Thread(target=m.run, daemon=True)
     runner.start()
     try:
@@ -562,9 +569,8 @@ def test_peers_results_stop_counting_once_every_map_is_merged():
 
     results = []
     budget = MemoryBudget(64 << 20, baseline_bytes=0)
-    m = Merger(1, lambda: (_box_grid(), 3), lambda: [_stored(2, _box_grid())], budget, period_s=0.2,
-               merge_fn=merge_all, local_version=lambda: 3, distributed=True,
-               peer_results=lambda: list(results))
+    sources = _one_map_sources(local_version=lambda: 3, peer_results=lambda: list(results))
+    m = Merger(1, MergerSettings(period_s=0.2, distributed=True), sources, budget, merge_fn=merge_all)
     runner = threading.Thread(target=m.run, daemon=True)
     runner.start()
     try:

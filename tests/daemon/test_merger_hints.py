@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from coopd.daemon.budget import MemoryBudget
+from coopd.daemon.merge_state import MergerSettings, MergeSources
 from coopd.daemon.merger import Merger
 from coopd.geometry import invert, rigid, rotation_angle_deg, rotation_z
 from coopd.merging import merge_all
@@ -43,10 +44,11 @@ def _result_message(vid, *edges):
 def _merger(chain, peer_results=(), distributed=True, published=None, vehicle_id=0, defer_full_s=0.0):
     received = [_stored(1, chain[1].grid), _stored(2, chain[2].grid)]
     budget = MemoryBudget(256 << 20, baseline_bytes=0)
-    return Merger(vehicle_id, lambda: (chain[0].grid.copy(), 4), lambda: received, budget, period_s=3600,
-                  merge_fn=merge_all, distributed=distributed,
-                  peer_results=lambda: list(peer_results),
-                  publish_results=None if published is None else published.append, defer_full_s=defer_full_s)
+    settings = MergerSettings(period_s=3600, distributed=distributed, defer_full_s=defer_full_s)
+    sources = MergeSources(lambda: (chain[0].grid.copy(), 4), lambda: received,
+                           peer_results=lambda: list(peer_results),
+                           publish_results=None if published is None else published.append)
+    return Merger(vehicle_id, settings, sources, budget, merge_fn=merge_all)
 
 
 @pytest.mark.slow
@@ -108,16 +110,16 @@ def test_a_higher_vehicle_id_leaves_the_full_search_to_the_lower_one_and_validat
     assert m.merge_once()["outcome"] == "done"
     assert m.counters["full_registrations"] == 0
     assert all(not o["accepted"] and o["reason"].startswith("deferred") for o in m.offsets.values())
-    requested = m._requested
+    requested = m.trigger.requested
     m.on_peer_result()  # a result arrived and maps are left out: merge again
-    assert m._requested == requested + 1
+    assert m.trigger.requested == requested + 1
     peer.append(_result_message(1, (1, 5, _truth(chain, 1, 0)), (1, 2, _truth(chain, 1, 2))))
     assert m.merge_once()["outcome"] == "done"
     assert m.counters["full_registrations"] == 0 and m.counters["hinted_peer"] == 2
     assert all(_close(np.reshape(o["transform"], (4, 4)), _truth(chain, 0, v)) for v, o in m.offsets.items())
-    requested = m._requested
+    requested = m.trigger.requested
     m.on_peer_result()  # nothing left out: no merge for it
-    assert m._requested == requested
+    assert m.trigger.requested == requested
 
 
 @pytest.mark.slow
@@ -167,18 +169,19 @@ def test_the_daemon_hands_its_merge_results_to_sharing_and_peers_results_to_the_
     from coopd.daemon.service import Daemon
 
     d = Daemon(_daemon_config(tmp_path), merge_fn=merge_all)
-    assert d.merger.distributed is True
+    assert d.merger.settings.distributed is True
     msg = _result_message(1, (1, 3, rigid(rotation_z(0.2), [1.0, 0.0, 0.0])))
-    d.merger.publish_results(msg)
+    d.merger.sources.publish_results(msg)
     pending = d.sharing.pending_for(7)
     assert [(origin, version, kind) for origin, version, _, kind in pending] == [(1, 1, "result")]
     assert wire.decode_merge_result(pending[0][2]).edges[0].b == 3
     assert d.sharing.results.offer(_result_message(5, (5, 1, np.eye(4))))
-    assert [r.vehicle_id for r in d.merger.peer_results()] == [5]
+    assert [r.vehicle_id for r in d.merger.sources.peer_results()] == [5]
     status = d.merger.status()
     assert {"full_registrations", "hinted", "hinted_own", "hinted_peer", "hint_rejected", "cpu_s",
             "done", "failed", "deferred", "offsets", "last"} <= set(status)
-    assert Daemon(_daemon_config(tmp_path, distributed=False), merge_fn=merge_all).merger.distributed is False
+    central = Daemon(_daemon_config(tmp_path, distributed=False), merge_fn=merge_all)
+    assert central.merger.settings.distributed is False
 
 
 def test_command_line_switches_distributed_merging_off():

@@ -70,8 +70,8 @@ def test_the_same_fit_found_again_on_grown_maps_is_confirmed_and_only_then_publi
     maps, truth, _ = flip
     calls, published = [], []
     feed = Feed(maps)
-    m = _merger(feed, _same_fit_fake(truth, calls), confirm_before_fusing=True)
-    m.distributed, m.peer_results, m.publish_results = True, lambda: [], published.append
+    m = _merger(feed, _same_fit_fake(truth, calls), confirm_before_fusing=True, distributed=True,
+                sources={"peer_results": lambda: [], "publish_results": published.append})
     m.merge_once("early")
     assert calls == [("full", True)] and published == []
     feed.set("later")  # grown 1.3x: searched again, the same fit: confirmed
@@ -104,8 +104,8 @@ def test_the_merging_thread_merges_again_to_confirm_when_nothing_changes(flip):
     maps, truth, _ = flip
     calls = []
     feed = Feed(maps)
-    m = _merger(feed, _same_fit_fake(truth, calls), confirm_before_fusing=True)
-    m.local_version, m.min_gap_s = (lambda: feed.version), 0.05
+    m = _merger(feed, _same_fit_fake(truth, calls), confirm_before_fusing=True, min_gap_s=0.05,
+                sources={"local_version": lambda: feed.version})
     t = threading.Thread(target=m.run, daemon=True)
     t.start()
     try:

@@ -1,0 +1,182 @@
+"""What the merging thread keeps (coopd.daemon.merge_state): the per-vehicle book, the trigger, the
+publisher, the global map slot and the settings, without a merge thread or merge_all."""
+
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+
+from coopd.daemon.budget import MemoryBudget
+from coopd.daemon.main import build_config, parse_args
+from coopd.daemon.merge_state import (
+    MERGE_MIN_GAP_S,
+    FitBook,
+    GlobalMapSlot,
+    MergerSettings,
+    MergeTrigger,
+    ResultPublisher,
+)
+from coopd.geometry import rigid, rotation_z
+from coopd.grid import OccupancyGrid
+from coopd.sharing.wire import EDGE_FULL, MergeEdge
+
+FIT = rigid(rotation_z(0.4), [2.0, 1.0, 0.0])
+MIRROR = rigid(rotation_z(0.4 + np.pi), [2.0, 1.0, 0.0])
+
+
+def _result(accepted=True, method="full", transform=FIT, ambiguous=False):
+    return SimpleNamespace(accepted=accepted, method=method, transform=transform, ambiguous=ambiguous,
+                           score=0.9, overlap=0.3, reason="accepted" if accepted else "ambiguous")
+
+
+def _map(vid, version=1):
+    return SimpleNamespace(vehicle_id=vid, version=version)
+
+
+def _edge(b, transform):
+    return MergeEdge(1, b, transform, 0.9, 0.3, 1, 1, EDGE_FULL)
+
+
+# -------------------------------------------------------------------------------------- the book
+def test_the_book_keeps_accepted_transforms_as_hints_and_the_maps_left_out():
+    book = FitBook()
+    edges = book.record(1, [_map(2, 5), _map(3)], [_result(), _result(accepted=False)], [1000, 800], set(),
+                        None, local_version=9)
+    assert [(e.b, e.version_a, e.version_b) for e in edges] == [(2, 9, 5)]
+    assert list(book.transforms()) == [2] and book.left_out and book.edges() == edges
+    assert book.pair(2).decided_at == 1000 and book.pair(2).last_size == 1000
+    book.record(1, [_map(2)], [_result(method="hint:own")], [1400], set(), None, local_version=10)
+    assert not book.left_out  # map 3 is gone from the inputs
+    assert book.pair(2).decided_at == 1000 and book.pair(2).last_size == 1400  # a hint decides nothing
+
+
+def test_a_first_accepted_hint_marks_the_size_it_was_decided_on():
+    book = FitBook()
+    book.record(1, [_map(2)], [_result(method="hint:peer")], [1200], set(), None, local_version=1)
+    assert book.pair(2).decided_at == 1200
+
+
+def test_an_ambiguous_search_drops_the_transform_and_contests_the_map_until_a_search_wins():
+    book = FitBook()
+    book.record(1, [_map(2)], [_result()], [1000], set(), None, local_version=1)
+    book.record(1, [_map(2)], [_result(accepted=False, ambiguous=True)], [1100], set(), None, local_version=2)
+    assert book.contested() == [2] and book.transforms() == {}
+    assert book.to_contest([2], [["a peer's hint"]], [1100], 1.3) == frozenset({0})
+    assert book.to_contest([2], [[]], [1100], 1.3) == frozenset()  # nothing to compete with
+    book.record(1, [_map(2)], [_result()], [1150], set(), None, local_version=3)
+    assert book.contested() == [] and list(book.transforms()) == [2]
+
+
+def test_a_map_is_rechecked_once_its_pair_grew():
+    book = FitBook()
+    book.record(1, [_map(2)], [_result()], [1000], set(), None, local_version=1)
+    assert book.to_contest([2], [["own"]], [1200], 1.3) == frozenset()
+    assert book.to_contest([2], [["own"]], [1300], 1.3) == frozenset({0})
+    assert book.to_contest([2], [["own"]], [1300], None) == frozenset()
+
+
+def test_a_new_fit_is_held_until_found_again_on_grown_maps_and_then_confirmed():
+    book = FitBook()
+    assert book.holds(2, _result(), 1000, 1.3)  # never seen: a new fit
+    inputs = (1, ((2, 1),), ())
+    book.record(1, [_map(2)], [_result()], [1000], {2}, inputs, local_version=1)
+    assert book.provisional() == [2] and book.holding and book.held_inputs == inputs
+    assert book.holds(2, _result(method="hint:own"), 1200, 1.3)  # our own transform alone: still held
+    assert book.holds(2, _result(), 1200, 1.3)  # the same fit, not grown 1.3x: still held
+    assert book.holds(2, _result(transform=MIRROR), 1400, 1.3)  # another fit: held in its turn
+    assert not book.holds(2, _result(), 1400, 1.3)  # the same fit on 1.4x maps: confirmed
+    assert not book.holds(2, _result(method="hint:peer"), 1200, 1.3)
+    book.record(1, [_map(2)], [_result()], [1400], set(), inputs, local_version=2)
+    assert book.provisional() == [] and not book.holding and book.held_inputs is None
+
+
+def test_confirming_every_held_fit_clears_them_and_their_inputs():
+    book = FitBook()
+    book.record(1, [_map(2), _map(3)], [_result(), _result()], [1000, 900], {2, 3}, (1, (), ()), 1)
+    assert book.confirm_all() == [2, 3]
+    assert book.provisional() == [] and book.held_inputs is None
+    assert [e.b for e in book.edges()] == [2, 3]  # the edges to publish now
+
+
+def test_a_full_search_waits_for_a_peer_only_until_defer_full_s_after_the_map_was_first_seen():
+    book = FitBook()
+    settings = MergerSettings(period_s=10.0, distributed=True, defer_full_s=30.0)
+    assert book.deferred(5, [1, 2], [[], ["own"]], settings, now=100.0) == frozenset({0}) and book.deferring
+    three, no_hints = [1, 2, 3], [[], [], []]
+    assert book.deferred(5, three, no_hints, settings, now=120.0) == frozenset({0, 1, 2})
+    assert book.deferred(5, three, no_hints, settings, now=131.0) == frozenset({2})  # 1 and 2 waited 31 s
+    assert book.deferred(5, three, no_hints, settings, now=200.0) == frozenset() and not book.deferring
+    assert book.deferred(1, [2, 3], [[], []], settings, now=100.0) == frozenset()  # the lowest id
+
+
+# ---------------------------------------------------------------------------- trigger and slot
+def test_the_trigger_serves_an_urgent_request_at_once_with_its_reasons():
+    trigger = MergeTrigger()
+    beats = []
+    settings = MergerSettings(period_s=3600, min_gap_s=3600, settle_s=3600)
+    assert trigger.request("map of vehicle 2") == 1 and trigger.request("merge-now", urgent=True) == 2
+    ticket, urgent, reasons = trigger.wait_due(1e12, 0.0, settings, lambda: beats.append(1), 1.0)
+    assert (ticket, urgent, reasons) == (2, True, ["map of vehicle 2", "merge-now"]) and beats
+    trigger.complete(ticket)
+    assert trigger.wait_completed(2, 0.0)
+    assert not trigger.wait_completed(3, 0.0)
+    assert trigger.wait_due(0.0, 0.0, settings, lambda: None, 1.0) == (2, False, ["period"])  # period due
+
+
+def test_the_trigger_holds_unsettled_requests_and_returns_none_once_stopped():
+    trigger = MergeTrigger()
+    settings = MergerSettings(period_s=3600, min_gap_s=3600, settle_s=3600)
+    trigger.request("map of vehicle 2")
+    got = []
+
+    def wait():
+        got.append(trigger.wait_due(1e12, 0.0, settings, lambda: None, 0.05))
+
+    waiter = threading.Thread(target=wait)
+    waiter.start()
+    waiter.join(0.3)
+    assert waiter.is_alive() and got == []  # settling for an hour
+    trigger.stop()
+    waiter.join(5)
+    assert got == [None] and trigger.stopped and trigger.wait_completed(99, 0.0)
+
+
+def test_the_global_map_slot_versions_installs_within_the_budget_and_releases_on_clear():
+    budget = MemoryBudget(1 << 20, baseline_bytes=0)
+    slot = GlobalMapSlot(4, budget)
+    assert slot.get() is None and slot.version is None
+    grid = OccupancyGrid.empty((20, 20, 10), 0.1)
+    assert slot.install(grid) and slot.install(grid.copy())
+    assert slot.version == 2 and slot.get()[1].vehicle_id == 4
+    assert budget.snapshot()["entries"]["global"] == grid.size
+    assert not slot.install(OccupancyGrid.empty((200, 200, 100), 0.1))  # over the budget: kept
+    assert slot.version == 2
+    slot.clear()
+    assert slot.get() is None and "global" not in budget.snapshot()["entries"]
+
+
+def test_the_daemons_settings_come_from_the_configuration():
+    config = build_config(parse_args(["--no-config"]))
+    s = MergerSettings.from_config(config)
+    assert s.period_s == config.merging.period_s and s.distributed == config.merging.distributed
+    assert s.min_gap_s == min(config.merging.period_s, MERGE_MIN_GAP_S)
+    assert s.settle_s == min(config.sharing.scan_period_s, MERGE_MIN_GAP_S)
+    assert s.limits.max_cells == config.sharing.max_map_cells
+    assert s.recheck_growth == config.merging.recheck_growth
+    assert s.confirm_before_fusing == config.merging.confirm_before_fusing and s.params is None
+
+
+def test_the_publisher_sends_only_changed_edges_with_increasing_versions_and_survives_a_refusal():
+    sent = []
+    publisher = ResultPublisher(1)
+    publisher.publish([], sent.append)
+    publisher.publish([_edge(2, FIT)], sent.append)
+    publisher.publish([_edge(2, FIT)], sent.append)
+    assert len(sent) == 1 and sent[0].vehicle_id == 1 and [e.b for e in sent[0].edges] == [2]
+    publisher.publish([_edge(2, MIRROR)], sent.append)
+    assert len(sent) == 2 and sent[1].version > sent[0].version
+
+    def refuse(message):
+        raise ValueError("too many edges")
+
+    publisher.publish([_edge(3, FIT)], refuse)  # logged, not raised
