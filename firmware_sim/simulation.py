@@ -297,7 +297,7 @@ class Simulation:
         vehicle's position then (move_origin) and the frame turned by turn_rad (a VIO without compass),
         or in the old frame. Unlike a real multicopter, the emulated airframe holds its position
         through the downtime, then resumes a mission it was flying (targets carried into the new frame).
-        The camera, a device of its own, keeps its clock."""
+        The camera stamps frames in the FC's time base, so its stamps restart with it."""
         if not (0.0 <= downtime_s <= 600.0) or not math.isfinite(turn_rad) or abs(turn_rad) > math.pi:
             raise ValueError("downtime_s is 0..600 s, turn_rad within +-pi")
         v = self.vehicles[i]
@@ -434,7 +434,8 @@ class Simulation:
 
     def _capture(self, v: Vehicle) -> None:
         """Take a depth frame now: rendered inline, or queued for the render thread in real-time mode."""
-        seq, t_us = v.camera_seq, int(round(self.time * 1e6))
+        # Stamped in the FC's time base (camera protocol clock "fc"): it restarts when the FC reboots.
+        seq, t_us = v.camera_seq, max(1, int(round((self.time - v.boot_offset) * 1e6)))
         v.camera_seq += 1
         if v.camera_stalled_until and time.monotonic() < v.camera_stalled_until:
             v.frames_withheld += 1

@@ -541,6 +541,7 @@ class Daemon:
             camera_fresh=age is not None and age <= self.config.camera.stall_timeout_s,
             camera_age_s=age,
             merged=merged,
+            frame_note=self.link.frames.note(),
         )
 
     def shutdown(self) -> None:
