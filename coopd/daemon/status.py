@@ -56,6 +56,7 @@ def build(daemon) -> dict:
             "state": mapping_state(daemon, link, camera),
             "paused": link["frame"]["paused"],
             "frame": link["frame"],
+            "reanchor": daemon.reanchor.status(),
             "frames_mapped": daemon.frames_mapped,
             "latency_ms": _percentiles(lat),
             "skipped": assoc["skipped"],

@@ -194,6 +194,11 @@ class FrameContinuity:
             guess = hold_guess(self._before[0], self._first_after)
             return self.epoch, guess
 
+    def newest_raw_t_fc(self) -> float | None:
+        """FC time of the newest pose of the unanchored frame (it has passed), or None."""
+        span = self._raw.span()
+        return None if span is None else span[1]
+
     def raw_pose_at(self, t_fc: float) -> PoseSample:
         """A pose of the FC's current (not yet anchored) frame; raises PoseLookupError."""
         return self._raw.at(t_fc)

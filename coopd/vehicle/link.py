@@ -483,9 +483,12 @@ class VehicleLink:
         newest pose's stamp (the fit lags while it learns the rate); None before either exists."""
         now = self.fc_time_now()
         latest = self.poses.latest()
-        if latest is None:
+        newest = self.frames.newest_raw_t_fc()  # while mapping pauses for the frame, poses still arrive
+        if latest is not None:
+            newest = latest.t_fc if newest is None else max(newest, latest.t_fc)
+        if newest is None:
             return now
-        return latest.t_fc if now is None else max(now, latest.t_fc)
+        return newest if now is None else max(now, newest)
 
     def fc_epoch(self) -> int:
         """Counts the FC's time-base restarts (reboots): FC-time stamps from before a change are void."""
