@@ -60,9 +60,6 @@ class ReanchorConfig:
     """The own map is read in the local map's box (placed by the guess) grown by this margin."""
     spread_m: float = 0.4
     """ICP also starts this far beside the guess, along x and y (four more starts)."""
-    guess_turn_deg: float = 2.0
-    """A fit turned at most this far from the guess keeps the guess's turn: the heading across a
-    short gap is known from the attitude better than a few frames' ICP tells it (about 1 deg)."""
     slide_m: float = 0.3
     min_slide_drop: float = 0.03
     """A fit moved slide_m horizontally, in any of 8 directions, must score at least this much lower
@@ -71,19 +68,12 @@ class ReanchorConfig:
     params: MergeParams = field(default_factory=reanchor_params)
 
 
-def turn_of(transform: np.ndarray) -> float:
-    """The turn about z (rad) closest to a 4x4's rotation."""
-    rot = transform[:3, :3]
-    return math.atan2(rot[1, 0] - rot[0, 1], rot[0, 0] + rot[1, 1])
-
-
-def gravity_aligned(transform: np.ndarray, pivot: np.ndarray, turn: float | None = None) -> np.ndarray:
+def gravity_aligned(transform: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     """The transform with its rotation reduced to the turn about z (both FC frames are levelled by
-    gravity: a tilt ICP found is noise), or to `turn` when given, keeping where it puts `pivot` (the
-    local map's centre)."""
+    gravity: a tilt ICP found is noise), keeping where it puts `pivot` (the local map's centre)."""
     rot = transform[:3, :3]
     out = np.eye(4)
-    out[:3, :3] = rotation_z(turn_of(transform) if turn is None else turn)
+    out[:3, :3] = rotation_z(math.atan2(rot[1, 0] - rot[0, 1], rot[0, 0] + rot[1, 1]))
     out[:3, 3] = rot @ pivot + transform[:3, 3] - out[:3, :3] @ pivot
     return out
 
@@ -217,10 +207,7 @@ class FrameReanchor:
         own_p, local_p = prepare(own, params, lazy=True), prepare(local, params, lazy=True)
         result = register(own_p, local_p, guess, params, self.config.spread_m)
         lo, hi = local.bounds_m()
-        turned = math.degrees(turn_of(result.transform) - turn_of(guess))
-        keep = abs((turned + 180.0) % 360.0 - 180.0) <= self.config.guess_turn_deg
-        result = replace(result, transform=gravity_aligned(result.transform, (lo + hi) / 2,
-                                                           turn_of(guess) if keep else None))
+        result = replace(result, transform=gravity_aligned(result.transform, (lo + hi) / 2))
         if result.accepted:
             slide = slide_direction(own_p, local_p, result.transform, self.config.slide_m,
                                     self.config.min_slide_drop)
