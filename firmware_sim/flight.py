@@ -352,6 +352,46 @@ class FlightController:
         d = target[:2] - s.pos[:2]
         return math.atan2(d[1], d[0]) if math.hypot(d[0], d[1]) > 0.5 else self.yaw_sp
 
+    def reframe(self, transform: np.ndarray) -> None:
+        """The estimate's frame changed (estimator re-initialised or reset): carry every local-frame
+        target (home, hold, offboard setpoint, mission items) and heading by the 4x4 from the old frame
+        into the new one, so the vehicle keeps flying where it was going."""
+        rot, shift = transform[:3, :3], transform[:3, 3]
+        turn = yaw_of(rot)
+
+        def move(p):
+            if p is None:
+                return None
+            p = np.asarray(p, float)
+            unset = np.isnan(p)
+            out = rot @ np.nan_to_num(p) + shift
+            out[unset] = math.nan
+            return out
+
+        self.home = move(self.home)
+        for sp in (self.hold, self.offboard):
+            sp.pos = move(sp.pos)
+            sp.vel = None if sp.vel is None else rot @ np.asarray(sp.vel, float)
+            sp.yaw = None if sp.yaw is None else wrap_pi(sp.yaw + turn)
+        for item in self.mission:
+            item.pos = move(item.pos)
+        self.yaw_sp = wrap_pi(self.yaw_sp + turn)
+        self.last_state = None
+
+    def hold_through(self, t: float) -> tuple[int, int]:
+        """Hold the current position (the emulator's stand-in for a flight controller that is
+        rebooting); returns the mode to resume."""
+        mode = (self.main_mode, self.sub_mode)
+        if self.armed and not self.landed:
+            self._set_mode(MAIN_AUTO, SUB_LOITER, t)
+            self._hold_here()
+        return mode
+
+    def resume(self, mode: tuple[int, int], t: float) -> None:
+        """Back to a mode held through a reboot (a mission continues from its current item)."""
+        if self.armed and mode[0] == MAIN_AUTO and mode[1] == SUB_MISSION:
+            self._set_mode(*mode, t)
+
     def _set_mode(self, main: int, sub: int, t: float) -> None:
         """Enter a mode, remembering when."""
         if (main, sub) != (self.main_mode, self.sub_mode):

@@ -185,7 +185,9 @@ class MavlinkLink:
         self.sock.close()
 
     def poll(self, t: float) -> None:
-        """Read and handle pending datagrams (bounded), then run protocol timers."""
+        """Read and handle pending datagrams (bounded), then run protocol timers; while the flight
+        controller reboots, whatever arrives is read and lost."""
+        down = self.v.fc_rebooting(t)
         for _ in range(MAX_DATAGRAMS_PER_POLL):
             try:
                 data, _addr = self.sock.recvfrom(MAX_DATAGRAM)
@@ -194,6 +196,9 @@ class MavlinkLink:
             except OSError:
                 self.stats["rx_errors"] += 1
                 break
+            if down:
+                self.stats["rx_while_rebooting"] += 1
+                continue
             self.stats["rx_datagrams"] += 1
             self._reset_parser()
             try:
@@ -220,6 +225,8 @@ class MavlinkLink:
     def on_sim_step(self, t: float, reached=(), texts=()) -> None:
         """Send the step's vehicle events (take_vehicle_events) and due telemetry; called after every
         physics step."""
+        if self.v.fc_rebooting(t):
+            return  # the endpoint is silent while the flight controller reboots
         fc = self.v.fc
         for seq in reached:
             self.send(self.tx.mission_item_reached_encode(seq))
@@ -243,7 +250,18 @@ class MavlinkLink:
         if msg_id == -1:
             self.send(self.tx.message_interval_encode(*self._interval_reply))
             return
-        self.send(self.producers[msg_id](t))
+        self.send(self.producers[msg_id](t - self.v.boot_offset))  # producers stamp time since boot
+
+    def restart(self) -> None:
+        """The flight controller booted again: a new MAVLink sequence, default stream rates (a
+        SET_MESSAGE_INTERVAL does not survive a reboot), timers from now; the socket stays bound."""
+        self.tx = mav.MAVLink(_Writer(self), srcSystem=self.v.system_id, srcComponent=1)
+        self.intervals = {m: 1.0 / hz if hz > 0 else 0.0 for m, hz in self.default_rates.items()}
+        self.next_due = dict.fromkeys(self.intervals, self.sim.time)
+        self._earliest_due = self.sim.time
+        self._after_ack = []
+        self._report_cache = None
+        self.stats["restarts"] += 1
 
     # ------------------------------------------------------------------ state views
 
@@ -292,7 +310,8 @@ class MavlinkLink:
 
     def _system_time(self, t: float):
         """SYSTEM_TIME: wall-clock Unix time plus the simulated time since boot."""
-        return self.tx.system_time_encode(int((self.boot_wall + t) * 1e6), int(t * 1000) & 0xFFFFFFFF)
+        unix = self.boot_wall + self.v.boot_offset + t
+        return self.tx.system_time_encode(int(unix * 1e6), int(t * 1000) & 0xFFFFFFFF)
 
     def _attitude(self, t: float):
         """ATTITUDE: reported roll, pitch, yaw (NED/FRD) and body rates."""
@@ -328,7 +347,7 @@ class MavlinkLink:
             *map(float, w),
             pc,
             vc,
-            0,
+            self.v.odometry.reset_counter & 0xFF,
             mav.MAV_ESTIMATOR_TYPE_VIO,
             100,
         )
@@ -465,7 +484,7 @@ class MavlinkLink:
     def _on_timesync(self, m) -> None:
         """Answer a TIMESYNC request with our clock in nanoseconds."""
         if m.tc1 == 0:
-            self.send(self.tx.timesync_encode(int(self.sim.time * 1e9), m.ts1))
+            self.send(self.tx.timesync_encode(int((self.sim.time - self.v.boot_offset) * 1e9), m.ts1))
 
     def _on_param_request_list(self, m) -> None:
         """Send every parameter."""

@@ -40,7 +40,12 @@ class OdometryModel:
     def __init__(self, frame_origin, frame_yaw: float, noise: NoiseConfig, rng: np.random.Generator):
         """Draw this vehicle's drift once from its own generator; noise gets a generator of its own."""
         self.origin = np.asarray(frame_origin, float)
+        self.frame_yaw = float(frame_yaw)
         self.frame_rot = rot_z(frame_yaw)
+        self.reset_counter = 0
+        """ODOMETRY.reset_counter: counts position resets of the running estimator (0 after a boot)."""
+        self.frame_log: list[tuple[float, np.ndarray, float]] = [(0.0, self.origin.copy(), self.frame_yaw)]
+        """(sim time, origin, frame yaw) of every reporting frame the estimator used, oldest first."""
         self.noise = noise
         self.drift_vel = np.array(
             [
@@ -89,6 +94,32 @@ class OdometryModel:
         p_loc = fr.T @ (np.asarray(pos_w) - self.origin)
         bias = self.drift_vel if self.drifting(t) else 0.0
         return rd @ p_loc + pd, rd @ fr.T @ rot_w, rd @ fr.T @ np.asarray(vel_w) + bias
+
+    def reframe(self, t: float, origin_world, frame_yaw: float, reset_counter: int) -> np.ndarray:
+        """From sim time t on, report in a new frame (origin, yaw in the world), as an estimator that
+        re-initialised (a reboot) or reset its position does; the drift carries on. Returns the 4x4
+        carrying points of the old local estimate into the new one (for the flight controller)."""
+        rd, pd = self.drift(t)
+        old_rot, old_origin = self.frame_rot, self.origin
+        self.origin = np.asarray(origin_world, float).copy()
+        self.frame_yaw = float(frame_yaw)
+        self.frame_rot = rot_z(frame_yaw)
+        self.reset_counter = int(reset_counter)
+        self.frame_log.append((t, self.origin.copy(), self.frame_yaw))
+        # local = rd F^T (w - o) + pd  =>  local_new = R local_old + s
+        rot = rd @ self.frame_rot.T @ old_rot @ rd.T
+        out = np.eye(4)
+        out[:3, :3] = rot
+        out[:3, 3] = pd - rot @ pd + rd @ self.frame_rot.T @ (old_origin - self.origin)
+        return out
+
+    def frame_at(self, t: float) -> tuple[np.ndarray, float]:
+        """(origin, frame yaw) of the reporting frame in use at sim time t."""
+        origin, yaw = self.frame_log[0][1], self.frame_log[0][2]
+        for t0, o, y in self.frame_log:
+            if t0 <= t:
+                origin, yaw = o, y
+        return origin.copy(), yaw
 
     def local_to_world_vector(self, t: float, vec_local) -> np.ndarray:
         """Express a local-estimate-frame vector (e.g. a force) in the world frame."""

@@ -93,6 +93,13 @@ class Vehicle:
     contact_count: int = 0
     """Contacts begun with anything but the floor (each geom touched anew counts once)."""
     touching: set[int] = field(default_factory=set)
+    boot_offset: float = 0.0
+    """Sim time at which the flight controller last booted: its MAVLink stamps count from there."""
+    fc_down_until: float = -math.inf
+    """Sim time until which the flight controller reboots (MAVLink silent); see Simulation.reboot_fc."""
+    fc_reboots: int = 0
+    pending_restart: tuple | None = None
+    """(keep_origin, frame turn, mode to resume) of a reboot in progress."""
 
     sim: Simulation | None = field(default=None, repr=False)
 
@@ -108,6 +115,10 @@ class Vehicle:
     def true_trajectory(self) -> np.ndarray:
         """Logged true trajectory: rows (t, x, y, z, qw, qx, qy, qz)."""
         return self.sim.trajectory(self.index)
+
+    def fc_rebooting(self, t: float) -> bool:
+        """True while the flight controller reboots (its MAVLink endpoint is silent)."""
+        return t < self.fc_down_until
 
     @property
     def links(self) -> list:
@@ -295,6 +306,74 @@ class Simulation:
             self.data.qvel[v.qvel_adr : v.qvel_adr + 6] = 0.0
             mujoco.mj_forward(self.model, self.data)
 
+    def reboot_fc(self, i: int, downtime_s: float = 2.0, move_origin: bool = True,
+                  turn_rad: float = 0.0) -> None:
+        """Reboot vehicle i's flight controller in flight: its MAVLink endpoint goes silent for
+        downtime_s (simulated), then comes back with time since boot restarted at 0, a new message
+        sequence and default stream rates; its estimator comes back with the local origin at the
+        vehicle's position then (move_origin) and the frame turned by turn_rad (a VIO without compass),
+        or in the old frame. Unlike a real multicopter, the emulated airframe holds its position
+        through the downtime, then resumes a mission it was flying (targets carried into the new frame).
+        The camera stamps frames in the FC's time base, so its stamps restart with it."""
+        if not (0.0 <= downtime_s <= 600.0) or not math.isfinite(turn_rad) or abs(turn_rad) > math.pi:
+            raise ValueError("downtime_s is 0..600 s, turn_rad within +-pi")
+        v = self.vehicles[i]
+        with self.lock:
+            if v.pending_restart is not None:
+                raise RuntimeError(f"vehicle {i}'s flight controller is already rebooting")
+            v.fc_down_until = self.time + downtime_s
+            v.pending_restart = (not move_origin, float(turn_rad), v.fc.hold_through(self.time))
+            v.fc_reboots += 1
+
+    def reset_estimator(self, i: int, shift_m=None, turn_rad: float = 0.0) -> np.ndarray:
+        """Vehicle i's estimator resets its position without a reboot (ODOMETRY.reset_counter + 1): the
+        reporting frame's origin moves by shift_m (world metres; None: to the vehicle's position now)
+        and turns by turn_rad, so the reported pose jumps. Returns the 4x4 from the old local frame
+        into the new one."""
+        if not math.isfinite(turn_rad) or abs(turn_rad) > math.pi:
+            raise ValueError("turn_rad within +-pi")
+        v = self.vehicles[i]
+        with self.lock:
+            odo = v.odometry
+            if shift_m is None:
+                origin = self.true_pose(i)[0]
+            else:
+                shift = np.asarray(shift_m, float)
+                if shift.shape != (3,) or not np.all(np.isfinite(shift)) or np.abs(shift).max() > 1e4:
+                    raise ValueError("shift_m is a finite (x, y, z) within 10 km")
+                origin = odo.origin + shift
+            return self._reframe(v, origin, odo.frame_yaw + turn_rad, odo.reset_counter + 1)
+
+    def _reframe(self, v: Vehicle, origin, frame_yaw: float, reset_counter: int) -> np.ndarray:
+        """Switch v's estimator to a new reporting frame and carry its flight controller's targets."""
+        transform = v.odometry.reframe(self.time, origin, frame_yaw, reset_counter)
+        v.fc.reframe(transform)
+        return transform
+
+    def _restart_fc(self, v: Vehicle) -> None:
+        """The end of a reboot: the estimator's new frame, a fresh time base and MAVLink instances."""
+        keep_origin, turn, mode = v.pending_restart
+        v.pending_restart = None
+        odo = v.odometry
+        if keep_origin:
+            self._reframe(v, odo.origin, odo.frame_yaw, 0)
+        else:
+            self._reframe(v, self.data.qpos[v.qpos_adr : v.qpos_adr + 3].copy(), odo.frame_yaw + turn, 0)
+        v.fc.resume(mode, self.time)
+        v.boot_offset = self.time
+        for link in v.links:
+            link.restart()
+
+    def fc_frame_transform(self, i: int, t_old: float, t_new: float) -> np.ndarray:
+        """Truth for tests: the 4x4 carrying points of vehicle i's drift-free reporting frame in use at
+        sim time t_new into the one in use at t_old (identity when the estimator kept its frame)."""
+        odo = self.vehicles[i].odometry
+        (o_old, y_old), (o_new, y_new) = odo.frame_at(t_old), odo.frame_at(t_new)
+        out = np.eye(4)
+        out[:3, :3] = rot_z(y_old).T @ rot_z(y_new)
+        out[:3, 3] = rot_z(y_old).T @ (o_new - o_old)
+        return out
+
     def true_velocity(self, i: int) -> np.ndarray:
         """True world-frame linear velocity of vehicle i."""
         v = self.vehicles[i]
@@ -350,6 +429,8 @@ class Simulation:
         if self.steps % TRAJECTORY_EVERY == 0:
             self._record_all()
         for v in self.vehicles:
+            if v.pending_restart is not None and not v.fc_rebooting(self.time):
+                self._restart_fc(v)
             if v.camera is not None and self.time + 1e-9 >= v.next_frame_t:
                 v.next_frame_t += 1.0 / v.camera.cfg.rate_hz
                 self._capture(v)
@@ -403,7 +484,8 @@ class Simulation:
 
     def _capture(self, v: Vehicle) -> None:
         """Take a depth frame now: rendered inline, or queued for the render thread in real-time mode."""
-        seq, t_us = v.camera_seq, int(round(self.time * 1e6))
+        # Stamped in the FC's time base (camera protocol clock "fc"): it restarts when the FC reboots.
+        seq, t_us = v.camera_seq, max(1, int(round((self.time - v.boot_offset) * 1e6)))
         v.camera_seq += 1
         if v.camera_stalled_until and time.monotonic() < v.camera_stalled_until:
             v.frames_withheld += 1

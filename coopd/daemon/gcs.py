@@ -1,13 +1,14 @@
 """What the flight controller and the GCS learn about coopd: HEARTBEAT system_status following the
 daemon's health, and one STATUSTEXT per event that matters (FC link up and lost, odometry ok and
-lost, camera frames ok and stalled, a peer's map merged), sent through the FC link (rate-limited there).
+lost, camera frames ok and stalled, mapping paused and resumed after the FC's frame moved (a reboot or an
+estimator reset), a peer's map merged), sent through the FC link (rate-limited there).
 
 | system_status | when |
 |---|---|
 | BOOT | the daemon is starting |
 | STANDBY | running, not mapping yet, nothing failed (no odometry or no camera frame so far) |
 | ACTIVE | mapping: fresh odometry and camera frames |
-| CRITICAL | mapping stopped because something that worked failed: odometry or camera frames stopped |
+| CRITICAL | mapping stopped: odometry or camera frames failed, or the FC's frame moved (not re-anchored) |
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ class Health:
     camera_age_s: float | None = None
     merged: frozenset[int] = field(default_factory=frozenset)
     """Vehicles whose maps are in the global map (accepted and confirmed)."""
+    frame_note: str | None = None
+    """Why mapping is paused after the FC's frame moved (FrameContinuity.note), or None."""
 
 
 def health_events(prev: Health | None, cur: Health) -> list[tuple[int, str]]:
@@ -47,6 +50,10 @@ def health_events(prev: Health | None, cur: Health) -> list[tuple[int, str]]:
         out.append((mav.MAV_SEVERITY_WARNING, f"coopd: camera stalled{age}"))
     elif cur.camera_fresh and not prev.camera_fresh:
         out.append((mav.MAV_SEVERITY_NOTICE, "coopd: camera frames ok"))
+    if cur.frame_note and not prev.frame_note:
+        out.append((mav.MAV_SEVERITY_WARNING, f"coopd: {cur.frame_note}"))
+    elif prev.frame_note and not cur.frame_note:
+        out.append((mav.MAV_SEVERITY_NOTICE, "coopd: map frame re-anchored, mapping"))
     for vid in sorted(cur.merged - prev.merged):
         out.append((mav.MAV_SEVERITY_INFO, f"coopd: merge confirmed for vehicle {vid}"))
     return out
@@ -54,6 +61,8 @@ def health_events(prev: Health | None, cur: Health) -> list[tuple[int, str]]:
 
 def system_status(cur: Health, odometry_seen: bool, camera_seen: bool) -> int:
     """MAV_STATE for our HEARTBEAT (the table above); *_seen: that input was fresh at least once."""
+    if cur.frame_note:
+        return mav.MAV_STATE_CRITICAL
     if cur.odometry_fresh and cur.camera_fresh:
         return mav.MAV_STATE_ACTIVE
     failed = (odometry_seen and not cur.odometry_fresh) or (camera_seen and not cur.camera_fresh)

@@ -51,6 +51,7 @@ from coopd.grid import OccupancyGrid
 from coopd.io.atomic import PRIVATE, write_atomic
 from coopd.mapping import CameraMount, FrameRejected, Mapper
 from coopd.mapping.association import FrameAssociator
+from coopd.mapping.reanchor import FrameReanchor
 from coopd.sharing import swarmkey
 from coopd.sharing import versions as map_versions
 from coopd.sharing.mtp import ACK_VERSION
@@ -275,6 +276,7 @@ class Daemon:
         self.camera = self._make_camera()
         self.associator = FrameAssociator(self.link, camera_mount(config), config.camera.pose_wait_s)
         self.mapper = self._make_mapper()
+        self.reanchor = FrameReanchor(self.link.frames, self.mapper, camera_mount(config))
         self.latency_s: deque[float] = deque(maxlen=LATENCY_WINDOW)
         watched = ["main", "mapping", "merging"] + (["sharing"] if config.sharing.enabled else [])
         self.progress = WorkerProgress(watched, HEALTH_MAX_AGE_S, HEALTH_BUSY_QUIET_S)
@@ -549,6 +551,7 @@ class Daemon:
             camera_fresh=age is not None and age <= self.config.camera.stall_timeout_s,
             camera_age_s=age,
             merged=merged,
+            frame_note=self.link.frames.note(),
         )
 
     def shutdown(self) -> None:
@@ -588,6 +591,9 @@ class Daemon:
                 continue
             associated = self.associator.associate(frame)
             if associated is None:
+                if self.associator.last_skip == "frame_paused":  # the FC's frame moved: re-anchor it
+                    with self.progress.working("mapping"):
+                        self.reanchor.offer(frame)
                 continue
             try:
                 self.mapper.integrate(

@@ -54,6 +54,9 @@ def build(daemon) -> dict:
         },
         "mapping": {
             "state": mapping_state(daemon, link, camera),
+            "paused": link["frame"]["paused"],
+            "frame": link["frame"],
+            "reanchor": daemon.reanchor.status(),
             "frames_mapped": daemon.frames_mapped,
             "latency_ms": _percentiles(lat),
             "skipped": assoc["skipped"],
@@ -102,6 +105,8 @@ def mapping_state(daemon, link: dict, camera: dict) -> str:
     """mapping, or why not: odometry stale (link lost) pauses it, a silent camera starves it."""
     if link["odometry_stale"]:
         return f"paused: odometry stale (link {link['link']})"
+    if link["frame"]["paused"]:
+        return f"paused: {link['frame']['paused']}"
     age = camera.get("last_frame_age_s")
     if age is None or age > daemon.config.camera.stall_timeout_s:
         return "waiting for camera frames"
@@ -177,6 +182,8 @@ def summary(daemon) -> str:
     why = daemon.link.reason()
     link = daemon.link.state + ("" if why is None else f" ({why[0]})")
     paused = " (paused: odometry stale)" if daemon.link.odometry_stale() else ""
+    note = daemon.link.frames.note()
+    paused = paused or ("" if note is None else f" ({note})")
     n_peers = 0 if daemon.sharing is None else len(daemon.sharing.peers.vehicle_ids())
     m = daemon.merger
     merges = f"merges {m.counters['done']}/{m.counters['failed']}/{m.counters['deferred']}"

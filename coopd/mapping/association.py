@@ -64,6 +64,8 @@ class FrameAssociator:
         self.poll_s = poll_s
         self.skipped: Counter = Counter()
         self.associated = 0
+        self.last_skip: str | None = None
+        """Why the last frame was skipped (frame_paused: the FC's frame is not anchored, see reanchor)."""
         self._paused = False
 
     def associate(self, frame: TimedDepth) -> AssociatedFrame | None:
@@ -99,6 +101,7 @@ class FrameAssociator:
 
     def _skip(self, reason: str) -> None:
         self.skipped[reason] += 1
+        self.last_skip = reason
         if reason == "odometry_stale":
             self._set_paused(True)
         return None

@@ -58,8 +58,9 @@ def resolve(hint: Hint, merged: dict[int, np.ndarray]) -> np.ndarray | None:
     return None if base is None else base @ hint.transform
 
 
-def _validates(a: PreparedMap, b: PreparedMap, t: np.ndarray, params: MergeParams) -> MergeResult | None:
-    """judge(t) if it is accepted and ICP did not move t far (else the hint was not what it claimed)."""
+def validate_hint(a: PreparedMap, b: PreparedMap, t: np.ndarray, params: MergeParams) -> MergeResult:
+    """judge(t), accepted only if ICP did not move t far either (else the hint was not what it claimed);
+    also what re-anchors the FC's frame after a reboot (coopd.mapping.reanchor)."""
     r = judge(a, b, t, params)
     moved = (float(np.linalg.norm(r.transform[:3, 3] - t[:3, 3])),
              rotation_angle_deg(t[:3, :3].T @ r.transform[:3, :3]))
@@ -80,11 +81,11 @@ def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray,
     cands = candidates[:MAX_HINTS]
     refused, final = 0, []
     for k, (t, source) in enumerate(cands):
-        r = _validates(a, b, t, params)
+        r = validate_hint(a, b, t, params)
         if r.accepted:
             for u in [u for u, _ in cands[k + 1:] if distinct(u, r.transform)]:
                 refused += 1  # a rival hint: validated for the check only, never taken
-                if _validates(a, b, u, params).accepted:
+                if validate_hint(a, b, u, params).accepted:
                     return None, refused + 1, final
             return replace(r, method=f"hint:{source}"), refused, final
         refused += 1

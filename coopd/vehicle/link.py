@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pymavlink.dialects.v20 import common as mav
 
 from .clock import ClockSync
+from .frame_continuity import ESTIMATOR_RESET, FC_REBOOT, ContinuityLimits, FrameContinuity
 from .odometry import OdometryLimits, OdometryTracker
 from .pose_buffer import PoseBuffer, PoseSample
 from .signing import KEY_BYTES, StreamSigning
@@ -52,6 +53,8 @@ class LinkConfig:
     pose_buffer_capacity: int = 1200
     pose_max_gap_s: float = 0.25
     odometry: OdometryLimits = field(default_factory=OdometryLimits)
+    continuity: ContinuityLimits = field(default_factory=ContinuityLimits)
+    """When the FC's frame after a reboot or estimator reset counts as the old one continued."""
     signing_key: bytes | None = field(default=None, repr=False)
     """MAVLink 2 signing key (32 bytes): sign ours, accept only validly signed FC messages; None: off."""
 
@@ -94,6 +97,8 @@ class VehicleLink:
         self.signing = None if config.signing_key is None else StreamSigning(self.mav, config.signing_key)
         self.poses = PoseBuffer(config.pose_buffer_capacity, config.pose_max_gap_s)
         self.odometry = OdometryTracker(config.odometry)
+        self.frames = FrameContinuity(config.continuity, config.pose_buffer_capacity, config.pose_max_gap_s)
+        """The FC frame -> map frame correction, and the mapping pause after a frame break."""
         self.clock = ClockSync()
         self.counters: Counter = Counter()
         self.target_system = config.target_system
@@ -284,12 +289,20 @@ class VehicleLink:
                 newest[1],
                 t_fc,
             )
+            self.frames.on_break(FC_REBOOT, self.poses.latest(), self._last_odometry)
             self.poses.clear()
             self.odometry.restart_time_base()
             self.clock.reset()
             self._streams_flowing = False
         sample = convert()
+        if self.odometry.take_reset():
+            self.frames.on_break(ESTIMATOR_RESET, self.poses.latest(), self._last_odometry)
         if sample is None:
+            return
+        sample = self.frames.admit(sample, now)
+        if sample is None:  # odometry flows, in a frame not anchored on the map yet: mapping pauses
+            self._last_odometry = now
+            self._streams_flowing = True
             return
         if self.poses.append(sample):
             self._last_odometry = now
@@ -474,7 +487,12 @@ class VehicleLink:
         return self.state != "ok" or now - self._last_odometry > self.config.odometry_timeout_s
 
     def pose_at(self, t_fc: float) -> PoseSample:
-        """Body pose in the map frame at FC time t_fc (raises PoseLookupError)."""
+        """Body pose in the map frame at FC time t_fc (raises PoseLookupError; reason frame_paused
+        after the newest pose while the FC's frame is not anchored on the map)."""
+        if self.frames.paused is not None:
+            latest = self.poses.latest()
+            if latest is None or t_fc > latest.t_fc:
+                raise self.frames.lookup_error()
         return self.poses.at(t_fc)
 
     def fc_time_at(self, local_s: float) -> float | None:
@@ -492,9 +510,12 @@ class VehicleLink:
         newest pose's stamp (the fit lags while it learns the rate); None before either exists."""
         now = self.fc_time_now()
         latest = self.poses.latest()
-        if latest is None:
+        newest = self.frames.newest_raw_t_fc()  # while mapping pauses for the frame, poses still arrive
+        if latest is not None:
+            newest = latest.t_fc if newest is None else max(newest, latest.t_fc)
+        if newest is None:
             return now
-        return latest.t_fc if now is None else max(now, latest.t_fc)
+        return newest if now is None else max(now, newest)
 
     def fc_epoch(self) -> int:
         """Counts the FC's time-base restarts (reboots): FC-time stamps from before a change are void."""
@@ -544,6 +565,7 @@ class VehicleLink:
             if self.odometry.origin_enu is None
             else [round(float(x), 4) for x in self.odometry.origin_enu],
             "map_origin_t_fc": self.odometry.origin_t_fc,
+            "frame": self.frames.status(),
             "clock": None
             if est is None
             else {

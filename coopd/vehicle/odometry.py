@@ -52,6 +52,7 @@ class OdometryTracker:
         self._rejected_in_row = 0
         self._attitude: tuple[tuple[float, np.ndarray], ...] | None = None
         self._reset_counter: int | None = None
+        self._reset_seen = False
 
     # -- message entry points -------------------------------------------------------------------
 
@@ -68,6 +69,7 @@ class OdometryTracker:
                 "estimator reset (counter %d -> %d): accepting the next pose jump", self._reset_counter, reset
             )
             self._last = None
+            self._reset_seen = True
         self._reset_counter = reset
         return self._accept(m.time_usec * 1e-6, (m.x, m.y, m.z), m.q)
 
@@ -93,6 +95,11 @@ class OdometryTracker:
             if t1 - t0 <= 2 * ATTITUDE_PAIRING_S:
                 q = slerp(q0, q1, min(max((t - t0) / (t1 - t0), 0.0), 2.0))
         return self._accept(t, (m.x, m.y, m.z), q)
+
+    def take_reset(self) -> bool:
+        """True once after the estimator reported a reset (ODOMETRY.reset_counter changed)."""
+        seen, self._reset_seen = self._reset_seen, False
+        return seen
 
     def restart_time_base(self) -> None:
         """The FC rebooted: forget the previous sample so its timestamps don't reject new ones."""

@@ -65,3 +65,12 @@ def test_what_works_at_the_first_sample_is_announced():
     link = FakeLink()
     GcsReporter(link).update(GOOD)
     assert [t for _, t in link.sent] == ["coopd: FC link up", "coopd: odometry ok", "coopd: camera frames ok"]
+
+
+def test_a_moved_fc_frame_pauses_and_resumes_mapping_for_the_gcs():
+    paused = with_(GOOD, frame_note="map paused: FC frame moved 3.2 m")
+    text = "coopd: map paused: FC frame moved 3.2 m"
+    assert health_events(GOOD, paused) == [(mav.MAV_SEVERITY_WARNING, text)] and len(text) <= 50
+    assert health_events(paused, paused) == []
+    assert health_events(paused, GOOD) == [(mav.MAV_SEVERITY_NOTICE, "coopd: map frame re-anchored, mapping")]
+    assert system_status(paused, True, True) == mav.MAV_STATE_CRITICAL

@@ -19,7 +19,7 @@ def heartbeat(enc=FC):
     return enc.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, 3, 3).pack(enc)
 
 
-def odometry(t, x):
+def odometry(t, x, reset=0):
     m = FC.odometry_encode(
         int(t * 1e6),
         1,
@@ -36,7 +36,7 @@ def odometry(t, x):
         0,
         [float("nan")] * 21,
         [float("nan")] * 21,
-        0,
+        reset,
         0,
         100,
     )
