@@ -8,7 +8,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-EMULATOR_OR_TOOLS = {"mujoco", "scipy", "pillow", "firmware_sim"}
+EMULATOR_OR_TOOLS = {"mujoco", "scipy", "pillow", "firmware_sim", "foxglove-sdk"}
 
 
 def names(requirements) -> set[str]:
@@ -20,7 +20,9 @@ def test_drone_dependencies_leave_out_the_emulator_and_the_tools():
     assert not names(PROJECT["dependencies"]) & EMULATOR_OR_TOOLS
     extras = PROJECT["optional-dependencies"]
     assert names(extras["sim"]) == {"mujoco", "scipy"} and names(extras["tools"]) == {"pillow"}
+    assert names(extras["viewer"]) == {"foxglove-sdk"}
     assert "coopd[sim,tools]" in extras["test"]  # scripts/setup test: everything the tests use
+    assert "coopd[viewer]" in extras["test"]
 
 
 def imported(nodes) -> set[str]:
@@ -51,5 +53,5 @@ def test_product_package_never_imports_the_emulator_and_tools_only_on_use():
         tree = ast.parse(path.read_text())
         name = path.relative_to(ROOT)
         problems += [f"{name} imports {m}" for m in imported(ast.walk(tree)) & {"firmware_sim", "scipy"}]
-        problems += [f"{name} imports {m} when it loads" for m in imported(at_load(tree)) & {"mujoco", "PIL"}]
+        problems += [f"{name} imports {m} when it loads" for m in imported(at_load(tree)) & {"mujoco", "PIL", "foxglove"}]
     assert problems == []
