@@ -36,14 +36,16 @@ def imported(nodes) -> set[str]:
 
 
 def at_load(tree: ast.Module) -> list[ast.AST]:
-    """The nodes that run when the module loads: not function bodies, not TYPE_CHECKING blocks."""
-    out = []
-    for node in tree.body:
-        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+    """The nodes that run when the module loads: not function or method bodies, not TYPE_CHECKING blocks."""
+    out, todo = [], list(tree.body)
+    while todo:
+        node = todo.pop()
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
             continue
         if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
             continue
-        out.extend(ast.walk(node))
+        out.append(node)
+        todo.extend(ast.iter_child_nodes(node))
     return out
 
 

@@ -1,0 +1,181 @@
+"""The viewer: bricks and runs (pure), then a real Foxglove WebSocket client on loopback that
+subscribes to the map and pose channels and decodes what the server sends."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from coopd.daemon.config import ViewerConfig
+from coopd.daemon.viewer import (
+    OWN,
+    PEER,
+    BrickTracker,
+    MapViewer,
+    brick_cubes,
+    brick_views,
+    labels_of,
+    runs_along_x,
+)
+from coopd.grid import OccupancyGrid
+from coopd.vehicle.pose_buffer import PoseSample
+
+pytest.importorskip("foxglove")
+pytest.importorskip("websockets")
+pytest.importorskip("google.protobuf")
+from tests.daemon.foxglove_client import FoxgloveClient  # noqa: E402
+
+RES = 0.1
+
+
+def small_map() -> OccupancyGrid:
+    """40 x 40 x 20 cells, offset (-20, -20, -10): a wall along x, a post, free cells elsewhere."""
+    grid = OccupancyGrid.empty((40, 40, 20), RES)
+    grid.cells[:, :, :10] = 0
+    grid.cells[3:30, 5, 2] = 100  # a run of 27 cells crossing two bricks along x
+    grid.cells[33, 33, 0:15] = 90  # a post
+    return grid
+
+
+def occupied_keys(grid: OccupancyGrid) -> set[tuple[int, int, int]]:
+    return {tuple(k) for k in (np.argwhere(grid.cells >= 50) + grid.offset).tolist()}
+
+
+def keys_of_cubes(cubes) -> set[tuple[int, int, int]]:
+    """The cell keys a list of (centre, size) cubes covers (runs along x)."""
+    keys = set()
+    for (cx, cy, cz), (sx, _, _) in cubes:
+        n = int(round(sx / RES))
+        x0 = int(round(cx / RES - (n - 1) / 2))
+        keys |= {(x0 + i, int(round(cy / RES)), int(round(cz / RES))) for i in range(n)}
+    return keys
+
+
+def test_runs_along_x_cover_exactly_the_labelled_cells():
+    rng = np.random.default_rng(1)
+    block = rng.choice([0, OWN, PEER], size=(16, 16, 16), p=[0.7, 0.2, 0.1]).astype(np.int8)
+    rebuilt = np.zeros_like(block)
+    for x0, y, z, length, label in runs_along_x(block):
+        assert np.all(block[x0:x0 + length, y, z] == label)
+        rebuilt[x0:x0 + length, y, z] = label
+    assert np.array_equal(rebuilt, block)
+
+
+def test_bricks_are_aligned_on_absolute_keys_and_only_changed_ones_come_back():
+    grid = small_map()
+    labels = labels_of(grid, None)
+    keys, blocks = brick_views(labels, grid.offset)
+    # offset -20 -> bricks -2..1 along x; the wall (x keys -17..9, y -15, z -8) and the post
+    assert {tuple(k) for k in keys.tolist()} == {(-2, -1, -1), (-1, -1, -1), (0, -1, -1),
+                                                  (0, 0, -1), (0, 0, 0)}
+    cubes = [c[:2] for k, b in zip(keys.tolist(), blocks, strict=True) for c in brick_cubes(k, b, RES)]
+    assert keys_of_cubes(cubes) == occupied_keys(grid)
+    tracker = BrickTracker()
+    changed, emptied = tracker.changes(labels, grid.offset)
+    assert len(changed) == 5 and emptied == []
+    assert tracker.changes(labels, grid.offset) == ({}, [])
+    grid.cells[33, 33, 0:15] = 0  # the post goes: its two bricks are emptied
+    grid.cells[35, 2, 3] = 100  # one new cell in a new brick
+    changed, emptied = tracker.changes(labels_of(grid, None), grid.offset)
+    assert set(changed) == {(0, -2, -1)} and sorted(emptied) == [(0, 0, -1), (0, 0, 0)]
+
+
+def test_source_labels_own_cells_and_peer_only_cells():
+    merged = small_map()
+    local = np.full(merged.shape, -1, dtype=np.int8)
+    local[3:30, 5, 2] = 100
+    labels = labels_of(merged, local, by_source=True)
+    assert np.all(labels[3:30, 5, 2] == OWN) and np.all(labels[33, 33, 0:15] == PEER)
+    assert np.count_nonzero(labels) == len(occupied_keys(merged))
+
+
+class FakeDaemon:
+    """The viewer's inputs: a local map under a lock, an installable global map, a pose, peers."""
+
+    def __init__(self):
+        self.local = small_map()
+        self.lock = threading.Lock()
+        self.merged = None
+        self.sample = PoseSample(5.0, np.array([1.0, 2.0, 0.5]), np.array([1.0, 0.0, 0.0, 0.0]))
+        self.peer_transforms = {}
+
+    def viewer(self) -> MapViewer:
+        return MapViewer(ViewerConfig(enabled=True, port=0), local_map=lambda: (self.local, self.lock),
+                         global_map=lambda: self.merged, pose=lambda: self.sample,
+                         peers=lambda: self.peer_transforms, status=lambda: {"state": "mapping"})
+
+
+def receive(client: FoxgloveClient, topics: set[str]) -> dict:
+    """The next message of each topic."""
+    got = {}
+    while not topics <= set(got):
+        topic, _, message = client.next_message()
+        got[topic] = message
+    return got
+
+
+def wait_subscribed(viewer: MapViewer) -> None:
+    assert viewer._resend.wait(10.0), "the server never reported the /map subscription"
+
+
+def cubes_of(entity) -> list:
+    return [((c.pose.position.x, c.pose.position.y, c.pose.position.z), (c.size.x, c.size.y, c.size.z))
+            for c in entity.cubes]
+
+
+def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
+    daemon = FakeDaemon()
+    viewer = daemon.viewer()
+    viewer.start()
+    try:
+        client = FoxgloveClient(f"ws://127.0.0.1:{viewer.port}")
+        try:
+            topics = {"/map", "/tf", "/track", "/status"}
+            client.subscribe(sorted(topics))
+            assert client.server_info["name"] == "coopd"
+            assert client.channels["/map"]["schemaName"] == "foxglove.SceneUpdate"
+            wait_subscribed(viewer)
+            viewer.tick()
+            got = receive(client, topics)
+            # before a merge the view is the local map: every occupied cell centre, nothing else
+            scene = got["/map"]
+            assert {e.frame_id for e in scene.entities} == {"map"}
+            sent = [c for e in scene.entities for c in cubes_of(e)]
+            assert keys_of_cubes(sent) == occupied_keys(daemon.local)
+            assert len(scene.entities) == 5 and len(scene.deletions) == 0
+            (tf,) = got["/tf"].transforms
+            assert (tf.parent_frame_id, tf.child_frame_id) == ("map", "base_link")
+            assert (tf.translation.x, tf.translation.y, tf.translation.z) == (1.0, 2.0, 0.5)
+            assert len(got["/track"].poses) == 1 and got["/status"] == {"state": "mapping"}
+
+            # a merge installs a global map differing in one brick, and a peer's frame is accepted
+            merged = small_map()
+            merged.cells[20, 5, 2] = 0  # key 0: brick 0 -1 -1
+            daemon.merged = (merged, None)
+            turn = np.eye(4)
+            turn[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+            turn[:3, 3] = [4.0, -1.0, 0.0]
+            daemon.peer_transforms = {7: turn}
+            viewer.tick()
+            got = receive(client, {"/map", "/tf"})
+            (entity,) = got["/map"].entities
+            assert entity.id == "brick 0 -1 -1" and len(got["/map"].deletions) == 0
+            in_brick = {k for k in occupied_keys(merged) if tuple(np.floor_divide(k, 16)) == (0, -1, -1)}
+            assert keys_of_cubes(cubes_of(entity)) == in_brick and len(in_brick) == 9
+            peer = got["/tf"].transforms[1]
+            assert (peer.parent_frame_id, peer.child_frame_id) == ("map", "vehicle_7")
+            assert (peer.translation.x, peer.translation.y) == (4.0, -1.0)
+            assert (peer.rotation.z, peer.rotation.w) == pytest.approx((np.sqrt(0.5), np.sqrt(0.5)))
+
+            # that brick emptied: deleted by id; nothing else is sent
+            emptied = merged.copy()
+            emptied.cells[3, 5, 2] = 0  # key -17, the wall's only cell in brick -2 -1 -1
+            daemon.merged = (emptied, None)
+            viewer.tick()
+            scene = receive(client, {"/map"})["/map"]
+            assert [d.id for d in scene.deletions] == ["brick -2 -1 -1"] and len(scene.entities) == 0
+            assert viewer.status()["bricks"] == 4
+        finally:
+            client.close()
+    finally:
+        viewer.close()
