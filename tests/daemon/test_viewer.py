@@ -1,6 +1,7 @@
 """The viewer: bricks and runs (pure), then a real Foxglove WebSocket client on loopback that
 subscribes to the map and pose channels and decodes what the server sends."""
 
+import shutil
 import threading
 
 import numpy as np
@@ -179,3 +180,49 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
             client.close()
     finally:
         viewer.close()
+
+
+def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
+    from daemon_harness import in_process_memory_mb, workdir
+
+    from coopd.daemon.config import from_dict
+    from coopd.daemon.service import Daemon
+    from tests.loopback_fc import free_port
+
+    wd = workdir("coopd-viewer-")
+    port = free_port()
+
+    def config(**viewer):
+        return from_dict({
+            "vehicle": {"id": 1, "mavlink": f"udpin:127.0.0.1:{free_port()}"},
+            "camera": {"source": f"socket:{wd}/camera.sock"},
+            "sharing": {"enabled": False},
+            "viewer": viewer,
+            "daemon": {"state_dir": str(wd / "state"), "control_socket": str(wd / "control.sock"),
+                       "memory_mb": in_process_memory_mb()},
+        })
+
+    d = Daemon(config(enabled=True, port=port, rate_hz=5.0), merge_fn=None)
+    d.start()
+    try:
+        client = FoxgloveClient(f"ws://127.0.0.1:{port}")
+        try:
+            client.subscribe(["/status", "/tf"])
+            got = receive(client, {"/status", "/tf"})
+            assert got["/status"]["viewer"]["enabled"] and got["/status"]["viewer"]["port"] == port
+            assert list(got["/tf"].transforms) == []  # no odometry yet: no base_link, no peers
+            assert any(t["role"] == "viewer" for t in d.priorities.report())
+        finally:
+            client.close()
+    finally:
+        d.request_stop("test")
+        d.shutdown()
+    with pytest.raises(OSError):
+        FoxgloveClient(f"ws://127.0.0.1:{port}", timeout_s=2.0)
+
+    d = Daemon(config(), merge_fn=None)
+    try:
+        assert d.viewer is None and d.handle_status({})["viewer"] == {"enabled": False}
+    finally:
+        d.shutdown()
+        shutil.rmtree(wd, ignore_errors=True)
