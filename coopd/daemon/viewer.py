@@ -38,8 +38,10 @@ log = logging.getLogger("coopd.daemon")
 
 BRICK_EDGE = 16
 """Cells along each side of a brick: the unit the map is re-sent in when one of its cells changes."""
-TRACK_POSES = 600
-"""Poses kept in the track (10 minutes at 1 Hz)."""
+TRACK_POSES = 300
+"""Poses kept in the track; the whole track is one message per tick (about 70 bytes a pose)."""
+TRACK_STEP_M = 0.5
+"""A pose joins the track once the vehicle moved this far from the last one (hovering adds none)."""
 HEIGHT_PERIOD_M = 4.0
 """Colour by height cycles through the hues every this many metres (a fixed scale: growing the map
 never recolours, hence never re-sends, the bricks already sent)."""
@@ -183,7 +185,7 @@ class MapViewer:
         class Listener(ServerListener):
             def on_subscribe(self, client, channel):
                 if channel.topic == "/map":
-                    viewer._resend.set()
+                    viewer.resend_all()
 
         context = self._context = foxglove.Context()  # kept: the channels leave it when it is freed
         self._channels = {
@@ -201,6 +203,14 @@ class MapViewer:
                         self.config.host, self.port)
         log.info("viewer: ws://%s:%d at %.1f Hz, colour by %s", self.config.host, self.port,
                  self.config.rate_hz, self.config.colour)
+
+    def resend_all(self) -> None:
+        """Send every brick on the next tick (a client that subscribes has none of them)."""
+        self._resend.set()
+
+    def subscribed(self, timeout_s: float) -> bool:
+        """Wait until a client subscribed to /map since the last tick (tests and the bench)."""
+        return self._resend.wait(timeout_s)
 
     def close(self) -> None:
         if self._server is not None:
@@ -257,16 +267,17 @@ class MapViewer:
         return SceneUpdate(entities=entities, deletions=deletions), len(entities) + len(deletions)
 
     def frames(self):
-        """FrameTransforms map -> base_link and map -> vehicle_N, and the pose for the track."""
+        """FrameTransforms map -> base_link and map -> vehicle_N; the pose and its position for the track."""
         from foxglove.messages import FrameTransform, FrameTransforms, Pose, Quaternion, Vector3
 
-        transforms, pose = [], None
+        transforms, pose, at = [], None, None
         sample = self.pose()
         if sample is not None:
             p, (w, x, y, z) = sample.position, (float(v) for v in sample.quaternion)
             position = Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
             rotation = Quaternion(x=x, y=y, z=z, w=w)
             pose = Pose(position=position, orientation=rotation)
+            at = np.array(p, dtype=np.float64)
             transforms.append(FrameTransform(parent_frame_id="map", child_frame_id="base_link",
                                              translation=position, rotation=rotation))
         for vehicle_id, t in sorted(self.peers().items()):
@@ -275,7 +286,7 @@ class MapViewer:
             transforms.append(FrameTransform(parent_frame_id="map", child_frame_id=f"vehicle_{vehicle_id}",
                                              translation=Vector3(x=t[0, 3], y=t[1, 3], z=t[2, 3]),
                                              rotation=Quaternion(x=x, y=y, z=z, w=w)))
-        return FrameTransforms(transforms=transforms), pose
+        return FrameTransforms(transforms=transforms), pose, at
 
     def tick(self) -> None:
         """One update of every channel."""
@@ -287,11 +298,11 @@ class MapViewer:
         if entities:
             self._channels["map"].log(update)
         self.counters["full_sends"] += everything
-        transforms, pose = self.frames()
+        transforms, pose, at = self.frames()
         self._channels["tf"].log(transforms)
-        if pose is not None:
-            self.track.append(pose)
-        self._channels["track"].log(PosesInFrame(frame_id="map", poses=list(self.track)))
+        if pose is not None and (not self.track or np.linalg.norm(at - self.track[-1][0]) >= TRACK_STEP_M):
+            self.track.append((at, pose))
+        self._channels["track"].log(PosesInFrame(frame_id="map", poses=[p for _, p in self.track]))
         self._channels["status"].log(json.dumps(self.status_of(), default=str).encode())
         self.counters["ticks"] += 1
 

@@ -116,7 +116,7 @@ def receive(client: FoxgloveClient, topics: set[str]) -> dict:
 
 
 def wait_subscribed(viewer: MapViewer) -> None:
-    assert viewer._resend.wait(10.0), "the server never reported the /map subscription"
+    assert viewer.subscribed(10.0), "the server never reported the /map subscription"
 
 
 def cubes_of(entity) -> list:
