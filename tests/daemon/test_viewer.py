@@ -226,3 +226,10 @@ def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
     finally:
         d.shutdown()
         shutil.rmtree(wd, ignore_errors=True)
+
+
+def test_only_loopback_addresses_count_as_loopback():
+    from coopd.daemon.viewer import is_loopback
+
+    assert is_loopback("127.0.0.1") and is_loopback("127.3.0.1") and is_loopback("::1")
+    assert not is_loopback("0.0.0.0") and not is_loopback("10.0.0.5") and not is_loopback("::")
