@@ -185,6 +185,11 @@ def format_status(s: dict) -> str:
                      f"last: nearest {'-' if nearest is None else f'{nearest} m'}, "
                      f"{ob.get('sectors_no_data', '-')} sectors no data, {ob.get('sectors_free', '-')} free; "
                      f"{ob.get('no_pose', '-')} without a pose"))
+    vw = s.get("viewer") or {}
+    if vw.get("enabled"):
+        rows.append(("viewer", f"{vw.get('url', '-')} at {vw.get('rate_hz', '-')} Hz; "
+                     f"{vw.get('bricks', '-')} bricks shown, {vw.get('bricks_sent', '-')} sent, "
+                     f"{vw.get('bricks_deleted', '-')} deleted, {vw.get('errors', '-')} errors"))
     stalled = (s.get("watchdog") or {}).get("stalled_threads") or {}
     if stalled:
         rows.append(("health", "not healthy (watchdog not fed): "

@@ -147,6 +147,11 @@ def is_loopback(host: str) -> bool:
     return ipaddress.ip_address(host).is_loopback
 
 
+def url_of(host: str, port) -> str:
+    """ws://HOST:PORT, an IPv6 address in brackets."""
+    return f"ws://[{host}]:{port}" if ":" in host else f"ws://{host}:{port}"
+
+
 # --------------------------------------------------------------------------------------- thread
 class MapViewer:
     """Owns the Foxglove server, its channels and the brick tracker; run() is the coopd-viewer loop.
@@ -201,7 +206,7 @@ class MapViewer:
             log.warning("viewer: listening on %s:%d, not loopback: the Foxglove protocol has no "
                         "authentication, anyone who reaches this address sees the map",
                         self.config.host, self.port)
-        log.info("viewer: ws://%s:%d at %.1f Hz, colour by %s", self.config.host, self.port,
+        log.info("viewer: %s at %.1f Hz, colour by %s", url_of(self.config.host, self.port),
                  self.config.rate_hz, self.config.colour)
 
     def resend_all(self) -> None:
@@ -325,6 +330,6 @@ class MapViewer:
         self._stop.set()
 
     def status(self) -> dict:
-        return {"enabled": True, "host": self.config.host, "port": self.port, "rate_hz": self.config.rate_hz,
+        return {"enabled": True, "url": url_of(self.config.host, self.port), "rate_hz": self.config.rate_hz,
                 "colour": self.config.colour, "bricks": len(self.tracker.digests), **self.counters}
 

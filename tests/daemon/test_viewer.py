@@ -185,6 +185,7 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
 def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
     from daemon_harness import in_process_memory_mb, workdir
 
+    from coopd.cli.daemon_commands import format_status
     from coopd.daemon.config import from_dict
     from coopd.daemon.service import Daemon
     from tests.loopback_fc import free_port
@@ -209,9 +210,11 @@ def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
         try:
             client.subscribe(["/status", "/tf"])
             got = receive(client, {"/status", "/tf"})
-            assert got["/status"]["viewer"]["enabled"] and got["/status"]["viewer"]["port"] == port
+            assert got["/status"]["viewer"]["enabled"] and got["/status"]["viewer"]["url"] == f"ws://127.0.0.1:{port}"
             assert list(got["/tf"].transforms) == []  # no odometry yet: no base_link, no peers
             assert any(t["role"] == "viewer" for t in d.priorities.report())
+            row = [line for line in format_status(d.handle_status({})).splitlines() if "viewer" in line]
+            assert row and f"ws://127.0.0.1:{port} at 5.0 Hz" in row[0]
         finally:
             client.close()
     finally:
@@ -229,7 +232,8 @@ def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
 
 
 def test_only_loopback_addresses_count_as_loopback():
-    from coopd.daemon.viewer import is_loopback
+    from coopd.daemon.viewer import is_loopback, url_of
 
     assert is_loopback("127.0.0.1") and is_loopback("127.3.0.1") and is_loopback("::1")
     assert not is_loopback("0.0.0.0") and not is_loopback("10.0.0.5") and not is_loopback("::")
+    assert url_of("::1", 8765) == "ws://[::1]:8765" and url_of("127.0.0.1", 1) == "ws://127.0.0.1:1"
