@@ -9,11 +9,13 @@ import pytest
 
 from coopd.daemon.config import ViewerConfig
 from coopd.daemon.viewer import (
+    BRICK_EDGE,
     OWN,
     PEER,
     BrickTracker,
     MapViewer,
     brick_cubes,
+    brick_id,
     brick_views,
     labels_of,
     runs_along_x,
@@ -65,13 +67,13 @@ def test_runs_along_x_cover_exactly_the_labelled_cells():
 def test_bricks_are_aligned_on_absolute_keys_and_only_changed_ones_come_back():
     grid = small_map()
     labels = labels_of(grid, None)
-    keys, blocks = brick_views(labels, grid.offset)
+    keys, blocks = brick_views(labels, grid.offset, 16)
     # offset -20 -> bricks -2..1 along x; the wall (x keys -17..9, y -15, z -8) and the post
     assert {tuple(k) for k in keys.tolist()} == {(-2, -1, -1), (-1, -1, -1), (0, -1, -1),
                                                   (0, 0, -1), (0, 0, 0)}
-    cubes = [c[:2] for k, b in zip(keys.tolist(), blocks, strict=True) for c in brick_cubes(k, b, RES)]
+    cubes = [c[:2] for k, b in zip(keys.tolist(), blocks, strict=True) for c in brick_cubes(k, b, RES, 16)]
     assert keys_of_cubes(cubes) == occupied_keys(grid)
-    tracker = BrickTracker()
+    tracker = BrickTracker(16)
     changed, emptied = tracker.changes(labels, grid.offset)
     assert len(changed) == 5 and emptied == []
     assert tracker.changes(labels, grid.offset) == ({}, [])
@@ -143,7 +145,8 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
             assert {e.frame_id for e in scene.entities} == {"map"}
             sent = [c for e in scene.entities for c in cubes_of(e)]
             assert keys_of_cubes(sent) == occupied_keys(daemon.local)
-            assert len(scene.entities) == 5 and len(scene.deletions) == 0
+            bricks = {brick_id(np.floor_divide(k, BRICK_EDGE)) for k in occupied_keys(daemon.local)}
+            assert {e.id for e in scene.entities} == bricks and len(scene.deletions) == 0
             (tf,) = got["/tf"].transforms
             assert (tf.parent_frame_id, tf.child_frame_id) == ("map", "base_link")
             assert (tf.translation.x, tf.translation.y, tf.translation.z) == (1.0, 2.0, 0.5)
@@ -151,7 +154,8 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
 
             # a merge installs a global map differing in one brick, and a peer's frame is accepted
             merged = small_map()
-            merged.cells[20, 5, 2] = 0  # key 0: brick 0 -1 -1
+            merged.cells[20, 5, 2] = 0  # key (0, -15, -8)
+            brick = tuple(np.floor_divide((0, -15, -8), BRICK_EDGE))
             daemon.merged = (merged, None)
             turn = np.eye(4)
             turn[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
@@ -160,9 +164,9 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
             viewer.tick()
             got = receive(client, {"/map", "/tf"})
             (entity,) = got["/map"].entities
-            assert entity.id == "brick 0 -1 -1" and len(got["/map"].deletions) == 0
-            in_brick = {k for k in occupied_keys(merged) if tuple(np.floor_divide(k, 16)) == (0, -1, -1)}
-            assert keys_of_cubes(cubes_of(entity)) == in_brick and len(in_brick) == 9
+            assert entity.id == brick_id(brick) and len(got["/map"].deletions) == 0
+            in_brick = {k for k in occupied_keys(merged) if tuple(np.floor_divide(k, BRICK_EDGE)) == brick}
+            assert keys_of_cubes(cubes_of(entity)) == in_brick and len(in_brick) > 0
             peer = got["/tf"].transforms[1]
             assert (peer.parent_frame_id, peer.child_frame_id) == ("map", "vehicle_7")
             assert (peer.translation.x, peer.translation.y) == (4.0, -1.0)
@@ -170,12 +174,13 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
 
             # that brick emptied: deleted by id; nothing else is sent
             emptied = merged.copy()
-            emptied.cells[3, 5, 2] = 0  # key -17, the wall's only cell in brick -2 -1 -1
+            emptied.cells[3, 5, 2] = 0  # key (-17, -15, -8): the wall's only cell in its brick (edge 8 or 16)
             daemon.merged = (emptied, None)
             viewer.tick()
             scene = receive(client, {"/map"})["/map"]
-            assert [d.id for d in scene.deletions] == ["brick -2 -1 -1"] and len(scene.entities) == 0
-            assert viewer.status()["bricks"] == 4
+            gone = brick_id(np.floor_divide((-17, -15, -8), BRICK_EDGE))
+            assert [d.id for d in scene.deletions] == [gone] and len(scene.entities) == 0
+            assert viewer.status()["bricks"] == len(bricks) - 1
         finally:
             client.close()
     finally:
