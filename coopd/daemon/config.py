@@ -298,6 +298,9 @@ class ViewerConfig:
     rate_hz: float = _key("map, pose and status updates per second", 1.0, _between(0.1, 10.0, " Hz"))
     colour: str = _key("occupied cells coloured by height or by source (own map or peers')", "height",
                        _one_of("height", "source"))
+    record_dir: str = _key("record the same channels to an MCAP file per start here; empty: no recording",
+                           "", _absolute_path(allow_empty=True))
+    record_max_mb: int = _key("a recording stops at this size, MiB", 1024, _between(1, 1 << 20, " MiB"))
 
 
 @dataclass(frozen=True)

@@ -446,6 +446,7 @@ class Daemon:
                            for vid, entry in list(self.merger.offsets.items())
                            if in_global_map(entry) and "transform" in entry},
             status=lambda: status_report.build(self),
+            vehicle_id=self.vehicle_id,
         )
         try:
             viewer.start()
@@ -508,7 +509,7 @@ class Daemon:
         self._spawn("coopd-merging", "merging", self.merger.run)
         if self.obstacles is not None:
             self._spawn("coopd-obstacles", "obstacles", self.obstacles.run)
-        if self.config.viewer.enabled:
+        if self.config.viewer.enabled or self.config.viewer.record_dir:
             self.viewer = self._start_viewer()
             self._spawn("coopd-viewer", "viewer", self.viewer.run)
         self.watchdog.start()

@@ -22,6 +22,7 @@ import hashlib
 import ipaddress
 import json
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -149,6 +150,18 @@ def is_loopback(host: str) -> bool:
     return ipaddress.ip_address(host).is_loopback
 
 
+def recording_path(directory: str, vehicle_id: int, now_s: float) -> str:
+    """DIR/coopd-vehicle<ID>-<UTC time>.mcap, a new name for every start (an existing file is kept)."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now_s))
+    os.makedirs(directory, mode=0o750, exist_ok=True)
+    base = os.path.join(directory, f"coopd-vehicle{vehicle_id}-{stamp}")
+    path, n = base + ".mcap", 1
+    while os.path.exists(path):
+        n += 1
+        path = f"{base}-{n}.mcap"
+    return path
+
+
 def url_of(host: str, port) -> str:
     """ws://HOST:PORT, an IPv6 address in brackets."""
     return f"ws://[{host}]:{port}" if ":" in host else f"ws://{host}:{port}"
@@ -163,7 +176,7 @@ class MapViewer:
     status() -> a JSON-able dict."""
 
     def __init__(self, config: ViewerConfig, local_map: Callable, global_map: Callable, pose: Callable,
-                 peers: Callable, status: Callable, threshold: int = OCCUPIED_THRESHOLD):
+                 peers: Callable, status: Callable, threshold: int = OCCUPIED_THRESHOLD, vehicle_id: int = 0):
         self.config = config
         self.local_map, self.global_map, self.pose, self.peers, self.status_of = (
             local_map, global_map, pose, peers, status)
@@ -173,6 +186,11 @@ class MapViewer:
         self.track: deque = deque(maxlen=TRACK_POSES)
         self.counters = {"ticks": 0, "bricks_sent": 0, "bricks_deleted": 0, "full_sends": 0, "errors": 0}
         self.port: int | None = None
+        self.vehicle_id = vehicle_id
+        self.recording: str | None = None
+        self.recording_bytes = 0
+        self.recording_stopped: str | None = None
+        self._writer = None
         self._resend = threading.Event()
         self._stop = threading.Event()
         self._server = None
@@ -181,8 +199,9 @@ class MapViewer:
 
     # --------------------------------------------------------------------------- server
     def start(self) -> None:
-        """Start the WebSocket server (raises ImportError without the viewer extra, OSError if the
-        address is taken); a client subscribing to /map gets every brick on the next tick."""
+        """Start the WebSocket server if enabled and the recording if record_dir is set (raises
+        ImportError without the viewer extra, OSError if the address is taken or the file cannot be
+        made); a client subscribing to /map gets every brick on the next tick."""
         import foxglove
         from foxglove.channels import FrameTransformsChannel, PosesInFrameChannel, SceneUpdateChannel
         from foxglove.websocket import ServerListener
@@ -201,6 +220,12 @@ class MapViewer:
             "track": PosesInFrameChannel("/track", context=context),
             "status": foxglove.Channel("/status", message_encoding="json", context=context),
         }
+        if self.config.record_dir:
+            self.recording = recording_path(self.config.record_dir, self.vehicle_id, time.time())
+            self._writer = foxglove.open_mcap(self.recording, context=context)
+            log.info("viewer: recording to %s (stops at %d MiB)", self.recording, self.config.record_max_mb)
+        if not self.config.enabled:
+            return
         self._server = foxglove.start_server(name="coopd", host=self.config.host, port=self.config.port,
                                              server_listener=Listener(), context=context)
         self.port = self._server.port
@@ -223,6 +248,26 @@ class MapViewer:
         if self._server is not None:
             self._server.stop()
             self._server = None
+        self._stop_recording(None)
+
+    def _stop_recording(self, reason: str | None) -> None:
+        """Close the MCAP file (it is complete and readable from then on)."""
+        if self._writer is None:
+            return
+        self._writer.close()
+        self._writer = None
+        self.recording_bytes = os.path.getsize(self.recording)
+        if reason:
+            self.recording_stopped = reason
+            log.warning("viewer: recording %s stopped at %.1f MiB: %s", self.recording,
+                        self.recording_bytes / 2**20, reason)
+
+    def _check_recording(self) -> None:
+        if self._writer is None:
+            return
+        self.recording_bytes = os.path.getsize(self.recording)
+        if self.recording_bytes >= self.config.record_max_mb * 2**20:
+            self._stop_recording(f"record_max_mb {self.config.record_max_mb} reached")
 
     # --------------------------------------------------------------------------- one tick
     def view_labels(self) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -312,6 +357,7 @@ class MapViewer:
         self._channels["track"].log(PosesInFrame(frame_id="map", poses=[p for _, p in self.track]))
         self._channels["status"].log(json.dumps(self.status_of(), default=str).encode())
         self.counters["ticks"] += 1
+        self._check_recording()
 
     def run(self) -> None:
         """Tick every 1/rate_hz s until stop(); an error on one tick is logged (first three) and counted."""
@@ -332,6 +378,11 @@ class MapViewer:
         self._stop.set()
 
     def status(self) -> dict:
-        return {"enabled": True, "url": url_of(self.config.host, self.port), "rate_hz": self.config.rate_hz,
-                "colour": self.config.colour, "bricks": len(self.tracker.digests), **self.counters}
+        served = self.port is not None
+        return {"enabled": True, "url": url_of(self.config.host, self.port) if served else None,
+                "rate_hz": self.config.rate_hz, "colour": self.config.colour,
+                "bricks": len(self.tracker.digests), **self.counters,
+                "recording": None if self.recording is None else {
+                    "path": self.recording, "bytes": self.recording_bytes, "open": self._writer is not None,
+                    "stopped": self.recording_stopped}}
 

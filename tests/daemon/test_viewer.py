@@ -1,6 +1,8 @@
 """The viewer: bricks and runs (pure), then a real Foxglove WebSocket client on loopback that
 subscribes to the map and pose channels and decodes what the server sends."""
 
+import base64
+import secrets
 import shutil
 import threading
 
@@ -242,3 +244,53 @@ def test_only_loopback_addresses_count_as_loopback():
     assert is_loopback("127.0.0.1") and is_loopback("127.3.0.1") and is_loopback("::1")
     assert not is_loopback("0.0.0.0") and not is_loopback("10.0.0.5") and not is_loopback("::")
     assert url_of("::1", 8765) == "ws://[::1]:8765" and url_of("127.0.0.1", 1) == "ws://127.0.0.1:1"
+
+
+def test_a_recording_holds_the_map_pose_and_status_and_stops_at_its_size_limit(tmp_path):
+    from mcap.reader import make_reader
+
+    daemon = FakeDaemon()
+    config = ViewerConfig(enabled=False, record_dir=str(tmp_path / "rec"), record_max_mb=1)
+    viewer = MapViewer(config, local_map=lambda: (daemon.local, daemon.lock),
+                       global_map=lambda: daemon.merged, pose=lambda: daemon.sample, peers=lambda: {},
+                       status=lambda: {"state": "mapping"}, vehicle_id=3)
+    viewer.start()
+    try:
+        assert viewer.port is None  # recording only: nothing listens
+        viewer.tick()
+        daemon.local.cells[0, 0, 0] = 100
+        viewer.tick()
+    finally:
+        viewer.close()
+    path = tmp_path / "rec" / viewer.recording.rsplit("/", 1)[1]
+    assert path.name.startswith("coopd-vehicle3-") and path.suffix == ".mcap"
+    client = FoxgloveClient.__new__(FoxgloveClient)  # its protobuf decoding, without a connection
+    client._classes = {}
+    topics = []
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages():
+            topics.append(channel.topic)
+            if channel.topic == "/map":
+                decoded = client.decode({"id": channel.id, "encoding": channel.message_encoding,
+                                         "schemaName": schema.name,
+                                         "schema": base64.b64encode(schema.data).decode()}, message.data)
+                if topics.count("/map") == 1:
+                    sent = [c for e in decoded.entities for c in cubes_of(e)]
+                    assert keys_of_cubes(sent) == occupied_keys(small_map())
+                else:  # the second tick: only the brick of the new cell
+                    assert [e.id for e in decoded.entities] == [brick_id(np.floor_divide((-20, -20, -10),
+                                                                                         BRICK_EDGE))]
+    assert topics.count("/map") == 2 and topics.count("/tf") == 2 and topics.count("/status") == 2
+    assert viewer.status()["recording"]["open"] is False and viewer.status()["recording"]["bytes"] > 0
+
+    big = MapViewer(config, local_map=lambda: (daemon.local, daemon.lock), global_map=lambda: None,
+                    pose=lambda: None, peers=lambda: {}, status=lambda: {"pad": secrets.token_hex(200_000)})
+    big.start()
+    try:
+        for _ in range(16):  # 16 x 400 kB of hex (about 200 kB compressed each) against 1 MiB
+            big.tick()
+        assert big.status()["recording"]["stopped"] == "record_max_mb 1 reached"
+        assert big.recording != viewer.recording  # a new file per start
+    finally:
+        big.close()
