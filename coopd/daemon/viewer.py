@@ -32,7 +32,7 @@ import numpy as np
 
 from coopd.daemon.config import ViewerConfig
 from coopd.geometry import matrix_to_quat
-from coopd.grid import OCCUPIED_THRESHOLD, OccupancyGrid
+from coopd.grid import OCCUPIED_THRESHOLD
 from coopd.grid.sectors import read_window
 
 log = logging.getLogger("coopd.daemon")
@@ -95,15 +95,17 @@ class BrickTracker:
         self.edge = edge
         self.digests: dict[tuple[int, int, int], bytes] = {}
 
-    def changes(self, labels: np.ndarray, offset, everything: bool = False):
-        """(changed {brick key: block}, emptied [brick keys]); everything: every non-empty brick."""
-        keys, blocks = brick_views(labels, offset, self.edge)
+    def changes(self, views, everything: bool = False):
+        """(changed {brick key: block}, emptied [brick keys]) over `views`, the (keys, blocks) of
+        brick_views for the whole map (in slabs: the brick keys of two never overlap); everything:
+        every non-empty brick."""
         digests, changed = {}, {}
-        for key, block in zip(map(tuple, keys.tolist()), blocks, strict=True):
-            digest = hashlib.blake2b(block.tobytes(), digest_size=16).digest()
-            digests[key] = digest
-            if everything or self.digests.get(key) != digest:
-                changed[key] = block
+        for keys, blocks in views:
+            for key, block in zip(map(tuple, keys.tolist()), blocks, strict=True):
+                digest = hashlib.blake2b(block.tobytes(), digest_size=16).digest()
+                digests[key] = digest
+                if everything or self.digests.get(key) != digest:
+                    changed[key] = block
         emptied = [k for k in self.digests if k not in digests]
         self.digests = digests
         return changed, emptied
@@ -112,11 +114,11 @@ class BrickTracker:
         self.digests = {}
 
 
-def labels_of(merged: OccupancyGrid, local: np.ndarray | None, threshold: int = OCCUPIED_THRESHOLD,
+def labels_of(cells: np.ndarray, local: np.ndarray | None, threshold: int = OCCUPIED_THRESHOLD,
               by_source: bool = False) -> np.ndarray:
     """Cell labels of the view: 0 not occupied, OWN or PEER. `local` is the local map read over the
-    merged grid's key box (or None); by height every occupied cell is OWN (the label is not a colour)."""
-    occupied = merged.cells >= threshold
+    same key box (or None); by height every occupied cell is OWN (the label is not a colour)."""
+    occupied = cells >= threshold
     labels = occupied.astype(np.int8)
     if by_source:
         own = occupied & (local >= threshold) if local is not None else np.zeros_like(occupied)
@@ -270,23 +272,32 @@ class MapViewer:
             self._stop_recording(f"record_max_mb {self.config.record_max_mb} reached")
 
     # --------------------------------------------------------------------------- one tick
-    def view_labels(self) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """(labels, offset, resolution) of the view: the global map, or the local map before a merge."""
+    def view_slabs(self):
+        """(resolution, brick views slab by slab) of the view: the global map, or the local map before
+        a merge. A slab is BRICK_EDGE layers along x, so what a tick holds at once is a slab's labels,
+        not a map's; the local map is read a slab at a time under the mapping lock."""
         merged = self.global_map()
-        if merged is None or self.by_source:
-            grid, lock = self.local_map()
-            if merged is None:
-                with lock:
-                    view = grid.copy()
-                local = view.cells
-            else:
-                view = merged[0]
-                lo, hi = view.key_bounds()
-                with lock:
-                    local = read_window(grid, lo, hi)
+        grid, lock = self.local_map()
+        if merged is None:
+            with lock:
+                lo, hi = grid.key_bounds()
+                resolution = grid.resolution
         else:
-            view, local = merged[0], None
-        return labels_of(view, local, self.threshold, self.by_source), view.offset, view.resolution
+            lo, hi = merged[0].key_bounds()
+            resolution = merged[0].resolution
+        return resolution, self._slabs(None if merged is None else merged[0], grid, lock, lo, hi)
+
+    def _slabs(self, view, grid, lock, lo, hi):
+        edge = self.tracker.edge
+        for x0 in range(int(lo[0]) // edge * edge, int(hi[0]) + 1, edge):
+            slab_lo = (max(x0, int(lo[0])), int(lo[1]), int(lo[2]))
+            slab_hi = (min(x0 + edge - 1, int(hi[0])), int(hi[1]), int(hi[2]))
+            local = None
+            if view is None or self.by_source:
+                with lock:
+                    local = read_window(grid, slab_lo, slab_hi)
+            cells = local if view is None else read_window(view, slab_lo, slab_hi)
+            yield brick_views(labels_of(cells, local, self.threshold, self.by_source), slab_lo, edge)
 
     def map_update(self, everything: bool = False):
         """The SceneUpdate of the bricks that changed (all of them if everything)."""
@@ -302,8 +313,8 @@ class MapViewer:
             Vector3,
         )
 
-        labels, offset, resolution = self.view_labels()
-        changed, emptied = self.tracker.changes(labels, offset, everything)
+        resolution, slabs = self.view_slabs()
+        changed, emptied = self.tracker.changes(slabs, everything)
         entities = []
         for key, block in changed.items():
             cubes = [CubePrimitive(pose=Pose(position=Vector3(x=c[0], y=c[1], z=c[2]),

@@ -14,6 +14,7 @@ from coopd.daemon.viewer import (
     BRICK_EDGE,
     OWN,
     PEER,
+    SOURCE_COLOURS,
     BrickTracker,
     MapViewer,
     brick_cubes,
@@ -68,7 +69,7 @@ def test_runs_along_x_cover_exactly_the_labelled_cells():
 
 def test_bricks_are_aligned_on_absolute_keys_and_only_changed_ones_come_back():
     grid = small_map()
-    labels = labels_of(grid, None)
+    labels = labels_of(grid.cells, None)
     keys, blocks = brick_views(labels, grid.offset, 16)
     # offset -20 -> bricks -2..1 along x; the wall (x keys -17..9, y -15, z -8) and the post
     assert {tuple(k) for k in keys.tolist()} == {(-2, -1, -1), (-1, -1, -1), (0, -1, -1),
@@ -76,12 +77,14 @@ def test_bricks_are_aligned_on_absolute_keys_and_only_changed_ones_come_back():
     cubes = [c[:2] for k, b in zip(keys.tolist(), blocks, strict=True) for c in brick_cubes(k, b, RES, 16)]
     assert keys_of_cubes(cubes) == occupied_keys(grid)
     tracker = BrickTracker(16)
-    changed, emptied = tracker.changes(labels, grid.offset)
+    changed, emptied = tracker.changes([brick_views(labels, grid.offset, 16)])
     assert len(changed) == 5 and emptied == []
-    assert tracker.changes(labels, grid.offset) == ({}, [])
+    # the same map in two slabs split on a brick boundary (key -16) is the same bricks: nothing changed
+    halves = [brick_views(labels[:4], grid.offset, 16), brick_views(labels[4:], grid.offset + (4, 0, 0), 16)]
+    assert tracker.changes(halves) == ({}, [])
     grid.cells[33, 33, 0:15] = 0  # the post goes: its two bricks are emptied
     grid.cells[35, 2, 3] = 100  # one new cell in a new brick
-    changed, emptied = tracker.changes(labels_of(grid, None), grid.offset)
+    changed, emptied = tracker.changes([brick_views(labels_of(grid.cells, None), grid.offset, 16)])
     assert set(changed) == {(0, -2, -1)} and sorted(emptied) == [(0, 0, -1), (0, 0, 0)]
 
 
@@ -89,7 +92,7 @@ def test_source_labels_own_cells_and_peer_only_cells():
     merged = small_map()
     local = np.full(merged.shape, -1, dtype=np.int8)
     local[3:30, 5, 2] = 100
-    labels = labels_of(merged, local, by_source=True)
+    labels = labels_of(merged.cells, local, by_source=True)
     assert np.all(labels[3:30, 5, 2] == OWN) and np.all(labels[33, 33, 0:15] == PEER)
     assert np.count_nonzero(labels) == len(occupied_keys(merged))
 
@@ -246,9 +249,48 @@ def test_only_loopback_addresses_count_as_loopback():
     assert url_of("::1", 8765) == "ws://[::1]:8765" and url_of("127.0.0.1", 1) == "ws://127.0.0.1:1"
 
 
-def test_a_recording_holds_the_map_pose_and_status_and_stops_at_its_size_limit(tmp_path):
+def recorded(path) -> list[tuple[str, object]]:
+    """(topic, decoded message) of every message in an MCAP file, decoded as the client decodes."""
     from mcap.reader import make_reader
 
+    client = FoxgloveClient.__new__(FoxgloveClient)  # its decoding, without a connection
+    client._classes = {}
+    out = []
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            described = {"id": channel.id, "encoding": channel.message_encoding,
+                         "schemaName": schema.name if schema else "",
+                         "schema": base64.b64encode(schema.data).decode() if schema else ""}
+            out.append((channel.topic, client.decode(described, message.data)))
+    return out
+
+
+def test_colour_by_source_tells_own_cells_from_cells_only_peers_mapped(tmp_path):
+    daemon = FakeDaemon()
+    daemon.local.cells[33, 33, 0:15] = 0  # our map has the wall; the post is only in the global map
+    daemon.merged = (small_map(), None)
+    config = ViewerConfig(enabled=False, colour="source", record_dir=str(tmp_path))
+    viewer = MapViewer(config, local_map=lambda: (daemon.local, daemon.lock),
+                       global_map=lambda: daemon.merged, pose=lambda: None, peers=lambda: {},
+                       status=lambda: {})
+    viewer.start()
+    try:
+        viewer.tick()
+    finally:
+        viewer.close()
+    (scene,) = [m for topic, m in recorded(viewer.recording) if topic == "/map"]
+    colours = {}
+    for entity in scene.entities:
+        for cube in entity.cubes:
+            colour = (round(cube.color.r, 2), round(cube.color.g, 2), round(cube.color.b, 2))
+            colours.setdefault(colour, []).append(((cube.pose.position.x, cube.pose.position.y,
+                                                    cube.pose.position.z), (cube.size.x, 0, 0)))
+    assert set(colours) == {SOURCE_COLOURS[OWN], SOURCE_COLOURS[PEER]}
+    assert {k[:2] for k in keys_of_cubes(colours[SOURCE_COLOURS[PEER]])} == {(13, 13)}  # the post
+    assert {(k[1], k[2]) for k in keys_of_cubes(colours[SOURCE_COLOURS[OWN]])} == {(-15, -8)}  # the wall
+
+
+def test_a_recording_holds_the_map_pose_and_status_and_stops_at_its_size_limit(tmp_path):
     daemon = FakeDaemon()
     config = ViewerConfig(enabled=False, record_dir=str(tmp_path / "rec"), record_max_mb=1)
     viewer = MapViewer(config, local_map=lambda: (daemon.local, daemon.lock),
@@ -264,23 +306,15 @@ def test_a_recording_holds_the_map_pose_and_status_and_stops_at_its_size_limit(t
         viewer.close()
     path = tmp_path / "rec" / viewer.recording.rsplit("/", 1)[1]
     assert path.name.startswith("coopd-vehicle3-") and path.suffix == ".mcap"
-    client = FoxgloveClient.__new__(FoxgloveClient)  # its protobuf decoding, without a connection
-    client._classes = {}
     topics = []
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        for schema, channel, message in reader.iter_messages():
-            topics.append(channel.topic)
-            if channel.topic == "/map":
-                decoded = client.decode({"id": channel.id, "encoding": channel.message_encoding,
-                                         "schemaName": schema.name,
-                                         "schema": base64.b64encode(schema.data).decode()}, message.data)
-                if topics.count("/map") == 1:
-                    sent = [c for e in decoded.entities for c in cubes_of(e)]
-                    assert keys_of_cubes(sent) == occupied_keys(small_map())
-                else:  # the second tick: only the brick of the new cell
-                    assert [e.id for e in decoded.entities] == [brick_id(np.floor_divide((-20, -20, -10),
-                                                                                         BRICK_EDGE))]
+    for topic, decoded in recorded(path):
+        topics.append(topic)
+        if topic == "/map" and topics.count("/map") == 1:
+            sent = [c for e in decoded.entities for c in cubes_of(e)]
+            assert keys_of_cubes(sent) == occupied_keys(small_map())
+        elif topic == "/map":  # the second tick: only the brick of the new cell
+            new_brick = brick_id(np.floor_divide((-20, -20, -10), BRICK_EDGE))
+            assert [e.id for e in decoded.entities] == [new_brick]
     assert topics.count("/map") == 2 and topics.count("/tf") == 2 and topics.count("/status") == 2
     assert viewer.status()["recording"]["open"] is False and viewer.status()["recording"]["bytes"] > 0
 
