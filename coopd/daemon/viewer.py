@@ -352,21 +352,29 @@ class MapViewer:
         return FrameTransforms(transforms=transforms), pose, at
 
     def tick(self) -> None:
-        """One update of every channel."""
+        """One update of every channel someone receives (a client subscribed to it, or the recording):
+        with nobody watching, the map is not even read."""
         from foxglove.messages import PosesInFrame
 
-        everything = self._resend.is_set()
-        self._resend.clear()
-        update, entities = self.map_update(everything)
-        if entities:
-            self._channels["map"].log(update)
-        self.counters["full_sends"] += everything
+        channels = self._channels
+        if channels["map"].has_sinks():
+            everything = self._resend.is_set()
+            self._resend.clear()
+            update, entities = self.map_update(everything)
+            if entities:
+                channels["map"].log(update)
+            self.counters["full_sends"] += everything
+        else:
+            self.tracker.reset()  # nobody holds the bricks: the next subscriber gets all of them
         transforms, pose, at = self.frames()
-        self._channels["tf"].log(transforms)
+        if channels["tf"].has_sinks():
+            channels["tf"].log(transforms)
         if pose is not None and (not self.track or np.linalg.norm(at - self.track[-1][0]) >= TRACK_STEP_M):
             self.track.append((at, pose))
-        self._channels["track"].log(PosesInFrame(frame_id="map", poses=[p for _, p in self.track]))
-        self._channels["status"].log(json.dumps(self.status_of(), default=str).encode())
+        if channels["track"].has_sinks():
+            channels["track"].log(PosesInFrame(frame_id="map", poses=[p for _, p in self.track]))
+        if channels["status"].has_sinks():
+            channels["status"].log(json.dumps(self.status_of(), default=str).encode())
         self.counters["ticks"] += 1
         self._check_recording()
 

@@ -328,3 +328,19 @@ def test_a_recording_holds_the_map_pose_and_status_and_stops_at_its_size_limit(t
         assert big.recording != viewer.recording  # a new file per start
     finally:
         big.close()
+
+
+def test_with_nobody_watching_the_map_is_not_read():
+    daemon = FakeDaemon()
+    reads = []
+    viewer = MapViewer(ViewerConfig(enabled=True, port=0),
+                       local_map=lambda: reads.append(1) or (daemon.local, daemon.lock),
+                       global_map=lambda: reads.append(1) or daemon.merged, pose=lambda: daemon.sample,
+                       peers=lambda: {}, status=lambda: reads.append(1) or {})
+    viewer.start()
+    try:
+        viewer.tick()
+        assert reads == [] and viewer.status()["bricks"] == 0 and viewer.counters["ticks"] == 1
+        assert len(viewer.track) == 1  # the track is kept all the same
+    finally:
+        viewer.close()
