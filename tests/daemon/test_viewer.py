@@ -344,3 +344,27 @@ def test_with_nobody_watching_the_map_is_not_read():
         assert len(viewer.track) == 1  # the track is kept all the same
     finally:
         viewer.close()
+
+
+@pytest.mark.parametrize("host, warned",
+                         [("0.0.0.0", True), ("10.1.2.3", True), ("127.0.0.1", False), ("::1", False)])
+def test_a_viewer_off_loopback_is_logged_as_unauthenticated(monkeypatch, caplog, host, warned):
+    import foxglove
+
+    class NotListening:  # stands in for the SDK's server: the test binds nothing outside loopback
+        port = 8765
+
+        def stop(self):
+            pass
+
+    asked = []
+    monkeypatch.setattr(foxglove, "start_server", lambda **kw: asked.append(kw) or NotListening())
+    daemon = FakeDaemon()
+    viewer = MapViewer(ViewerConfig(enabled=True, host=host), local_map=lambda: (daemon.local, daemon.lock),
+                       global_map=lambda: None, pose=lambda: None, peers=lambda: {}, status=lambda: {})
+    with caplog.at_level("WARNING", logger="coopd.daemon"):
+        viewer.start()
+    viewer.close()
+    assert asked[0]["host"] == host and asked[0]["port"] == 8765
+    warnings = [r for r in caplog.records if r.levelname == "WARNING" and "no authentication" in r.message]
+    assert bool(warnings) == warned
