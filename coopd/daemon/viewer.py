@@ -41,6 +41,11 @@ BRICK_EDGE = 8
 """Cells along each side of a brick: the unit the map is re-sent in when one of its cells changes
 (8 sent 20 % fewer bytes than 16 while a 1 M-cell map was explored, and kept the peak under 1 Mbit/s:
 scripts/bench viewer)."""
+BRICKS_PER_MESSAGE = 256
+"""Bricks in one /map message (a few hundred kB for walls; a whole map takes several messages)."""
+BACKLOG_MESSAGES = 64
+"""Messages the server queues per client (16 s at 1 Hz): a stalled client costs a bounded amount of
+memory; the SDK drops its oldest data then, and reconnecting gets the whole map again."""
 TRACK_POSES = 300
 """Poses kept in the track; the whole track is one message per tick (about 70 bytes a pose)."""
 TRACK_STEP_M = 0.5
@@ -229,7 +234,8 @@ class MapViewer:
         if not self.config.enabled:
             return
         self._server = foxglove.start_server(name="coopd", host=self.config.host, port=self.config.port,
-                                             server_listener=Listener(), context=context)
+                                             server_listener=Listener(), context=context,
+                                             message_backlog_size=BACKLOG_MESSAGES)
         self.port = self._server.port
         if not is_loopback(self.config.host):
             log.warning("viewer: listening on %s:%d, not loopback: the Foxglove protocol has no "
@@ -242,9 +248,15 @@ class MapViewer:
         """Send every brick on the next tick (a client that subscribes has none of them)."""
         self._resend.set()
 
-    def subscribed(self, timeout_s: float) -> bool:
-        """Wait until a client subscribed to /map since the last tick (tests and the bench)."""
-        return self._resend.wait(timeout_s)
+    def subscribed(self, topics, timeout_s: float) -> bool:
+        """Wait until every topic has a receiver (tests and the bench: a tick skips the others)."""
+        by_topic = {"/" + name: channel for name, channel in self._channels.items()}
+        deadline = time.monotonic() + timeout_s
+        while not all(by_topic[t].has_sinks() for t in topics):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
 
     def close(self) -> None:
         if self._server is not None:
@@ -299,8 +311,9 @@ class MapViewer:
             cells = local if view is None else read_window(view, slab_lo, slab_hi)
             yield brick_views(labels_of(cells, local, self.threshold, self.by_source), slab_lo, edge)
 
-    def map_update(self, everything: bool = False):
-        """The SceneUpdate of the bricks that changed (all of them if everything)."""
+    def map_update(self, everything: bool = False) -> list:
+        """The SceneUpdates of the bricks that changed (all of them if everything), at most
+        BRICKS_PER_MESSAGE bricks each, so no message grows with the map."""
         from foxglove.messages import (
             Color,
             CubePrimitive,
@@ -327,7 +340,9 @@ class MapViewer:
                      for k in emptied]
         self.counters["bricks_sent"] += len(entities)
         self.counters["bricks_deleted"] += len(deletions)
-        return SceneUpdate(entities=entities, deletions=deletions), len(entities) + len(deletions)
+        n = BRICKS_PER_MESSAGE
+        updates = [SceneUpdate(deletions=deletions[i:i + n]) for i in range(0, len(deletions), n)]
+        return updates + [SceneUpdate(entities=entities[i:i + n]) for i in range(0, len(entities), n)]
 
     def frames(self):
         """FrameTransforms map -> base_link and map -> vehicle_N; the pose and its position for the track."""
@@ -360,8 +375,7 @@ class MapViewer:
         if channels["map"].has_sinks():
             everything = self._resend.is_set()
             self._resend.clear()
-            update, entities = self.map_update(everything)
-            if entities:
+            for update in self.map_update(everything):
                 channels["map"].log(update)
             self.counters["full_sends"] += everything
         else:

@@ -79,9 +79,10 @@ def run(truth: np.ndarray, path: np.ndarray, range_m: float, full: bool) -> dict
     try:
         client = FoxgloveClient(f"ws://127.0.0.1:{viewer.port}", timeout_s=30.0)
         try:
-            client.subscribe(["/map", "/tf", "/track"])
-            if not viewer.subscribed(10.0):
-                raise RuntimeError("the server never reported the /map subscription")
+            topics = ["/map", "/tf", "/track"]
+            client.subscribe(topics)
+            if not viewer.subscribed(topics, 10.0):
+                raise RuntimeError(f"the server never saw the subscriptions to {topics}")
             for t, (x, y) in enumerate(path):
                 state["merged"] = (explore.visit((x, y)), None)
                 state["sample"] = PoseSample(float(t), np.array([x, y, 1.5]), np.array([1.0, 0.0, 0.0, 0.0]))

@@ -122,8 +122,8 @@ def receive(client: FoxgloveClient, topics: set[str]) -> dict:
     return got
 
 
-def wait_subscribed(viewer: MapViewer) -> None:
-    assert viewer.subscribed(10.0), "the server never reported the /map subscription"
+def wait_subscribed(viewer: MapViewer, topics) -> None:
+    assert viewer.subscribed(topics, 10.0), f"the server never saw the subscriptions to {topics}"
 
 
 def cubes_of(entity) -> list:
@@ -142,7 +142,7 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
             client.subscribe(sorted(topics))
             assert client.server_info["name"] == "coopd"
             assert client.channels["/map"]["schemaName"] == "foxglove.SceneUpdate"
-            wait_subscribed(viewer)
+            wait_subscribed(viewer, topics)
             viewer.tick()
             got = receive(client, topics)
             # before a merge the view is the local map: every occupied cell centre, nothing else
@@ -368,3 +368,23 @@ def test_a_viewer_off_loopback_is_logged_as_unauthenticated(monkeypatch, caplog,
     assert asked[0]["host"] == host and asked[0]["port"] == 8765
     warnings = [r for r in caplog.records if r.levelname == "WARNING" and "no authentication" in r.message]
     assert bool(warnings) == warned
+
+
+def test_a_large_update_is_split_into_messages_of_bounded_bricks(monkeypatch, tmp_path):
+    import coopd.daemon.viewer as viewer_module
+
+    monkeypatch.setattr(viewer_module, "BRICKS_PER_MESSAGE", 2)
+    daemon = FakeDaemon()
+    viewer = MapViewer(ViewerConfig(record_dir=str(tmp_path)), local_map=lambda: (daemon.local, daemon.lock),
+                       global_map=lambda: None, pose=lambda: None, peers=lambda: {}, status=lambda: {})
+    viewer.start()
+    try:
+        viewer.tick()
+    finally:
+        viewer.close()
+    scenes = [m for topic, m in recorded(viewer.recording) if topic == "/map"]
+    bricks = {brick_id(np.floor_divide(k, BRICK_EDGE)) for k in occupied_keys(daemon.local)}
+    assert len(scenes) == -(-len(bricks) // 2) and all(len(s.entities) <= 2 for s in scenes)
+    sent = [c for s in scenes for e in s.entities for c in cubes_of(e)]
+    assert {e.id for s in scenes for e in s.entities} == bricks
+    assert keys_of_cubes(sent) == occupied_keys(daemon.local)
