@@ -8,13 +8,15 @@ The Foxglove SDK serves the Foxglove WebSocket protocol; coopd only logs message
              Runs of occupied cells along x are one cube each.
     /tf      foxglove.FrameTransforms: map -> base_link (this vehicle's newest pose) and
              map -> vehicle_N (each merged peer's map frame, from its accepted transform).
-    /track   foxglove.PosesInFrame: this vehicle's last TRACK_POSES poses, one per tick.
+    /track   foxglove.PosesInFrame: this vehicle's last TRACK_POSES poses, TRACK_STEP_M apart.
     /status  JSON: what `coopctl status` shows.
 
-The map is read the way the obstacles thread reads it: the merger's installed global map is never
-changed (a merge installs a new one), and the live local map is copied under the mapping lock only
-when the view needs it (no global map yet, or colour = "source"). The foxglove module is imported
-only when the viewer starts, so the drone install runs without it.
+The same channels can be recorded to an MCAP file ([viewer] record_dir) by the SDK. A channel
+nobody receives (no subscribed client, no recording) is not computed. The map is read the way the
+obstacles thread reads it: the merger's installed global map is never changed (a merge installs a
+new one), and the live local map is read under the mapping lock only when the view needs it (no
+global map yet, or colour = "source"), both a slab of BRICK_EDGE x-layers at a time. The foxglove
+module is imported only when the viewer starts, so the drone install runs without it.
 """
 
 import colorsys
@@ -403,6 +405,8 @@ class MapViewer:
                 self.counters["errors"] += 1
                 if self.counters["errors"] <= 3:
                     log.exception("viewer: update failed (%d so far)", self.counters["errors"])
+                self.tracker.reset()  # what the clients hold is unknown now: send them every brick
+                self.resend_all()
             next_at = max(next_at + period, time.monotonic())
             self._stop.wait(max(0.0, next_at - time.monotonic()))
         self.close()
