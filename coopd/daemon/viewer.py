@@ -377,8 +377,13 @@ class MapViewer:
         if channels["map"].has_sinks():
             everything = self._resend.is_set()
             self._resend.clear()
-            for update in self.map_update(everything):
-                channels["map"].log(update)
+            try:
+                for update in self.map_update(everything):
+                    channels["map"].log(update)
+            except Exception:
+                self.tracker.reset()  # what the receivers hold is unknown now: send them every brick
+                self.resend_all()
+                raise
             self.counters["full_sends"] += everything
         else:
             self.tracker.reset()  # nobody holds the bricks: the next subscriber gets all of them
@@ -405,8 +410,6 @@ class MapViewer:
                 self.counters["errors"] += 1
                 if self.counters["errors"] <= 3:
                     log.exception("viewer: update failed (%d so far)", self.counters["errors"])
-                self.tracker.reset()  # what the clients hold is unknown now: send them every brick
-                self.resend_all()
             next_at = max(next_at + period, time.monotonic())
             self._stop.wait(max(0.0, next_at - time.monotonic()))
         self.close()

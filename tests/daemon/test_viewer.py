@@ -388,3 +388,28 @@ def test_a_large_update_is_split_into_messages_of_bounded_bricks(monkeypatch, tm
     sent = [c for s in scenes for e in s.entities for c in cubes_of(e)]
     assert {e.id for s in scenes for e in s.entities} == bricks
     assert keys_of_cubes(sent) == occupied_keys(daemon.local)
+
+
+def test_after_a_failed_update_every_brick_is_sent_again(tmp_path):
+    daemon = FakeDaemon()
+    failing = []
+
+    def global_map():
+        if failing:
+            raise OSError("the map could not be read")
+        return daemon.merged
+
+    viewer = MapViewer(ViewerConfig(record_dir=str(tmp_path)), local_map=lambda: (daemon.local, daemon.lock),
+                       global_map=global_map, pose=lambda: None, peers=lambda: {}, status=lambda: {})
+    viewer.start()
+    try:
+        viewer.tick()
+        failing.append(1)
+        with pytest.raises(OSError):
+            viewer.tick()
+        failing.clear()
+        viewer.tick()
+    finally:
+        viewer.close()
+    first, again = [m for topic, m in recorded(viewer.recording) if topic == "/map"]
+    assert {e.id for e in again.entities} == {e.id for e in first.entities} != set()
