@@ -4,6 +4,7 @@ subscribes to the map and pose channels and decodes what the server sends."""
 import base64
 import secrets
 import shutil
+import sys
 import threading
 
 import numpy as np
@@ -192,12 +193,12 @@ def test_a_foxglove_client_receives_the_map_pose_peers_and_status():
         viewer.close()
 
 
-def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
+def test_the_daemon_serves_and_records_the_viewer_only_when_enabled_and_stops_it(monkeypatch):
     from daemon_harness import in_process_memory_mb, workdir
 
     from coopd.cli.daemon_commands import format_status
     from coopd.daemon.config import from_dict
-    from coopd.daemon.service import Daemon
+    from coopd.daemon.service import Daemon, StartupError
     from tests.loopback_fc import free_port
 
     wd = workdir("coopd-viewer-")
@@ -213,7 +214,7 @@ def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
                        "memory_mb": in_process_memory_mb()},
         })
 
-    d = Daemon(config(enabled=True, port=port, rate_hz=5.0), merge_fn=None)
+    d = Daemon(config(enabled=True, port=port, rate_hz=5.0, record_dir=str(wd / "rec")), merge_fn=None)
     d.start()
     try:
         client = FoxgloveClient(f"ws://127.0.0.1:{port}")
@@ -225,6 +226,8 @@ def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
             assert any(t["role"] == "viewer" for t in d.priorities.report())
             row = [line for line in format_status(d.handle_status({})).splitlines() if "viewer" in line]
             assert row and f"ws://127.0.0.1:{port} at 5.0 Hz" in row[0]
+            rows = format_status(d.handle_status({})).splitlines()
+            assert any("recording" in line and str(wd / "rec") in line for line in rows)
         finally:
             client.close()
     finally:
@@ -232,6 +235,18 @@ def test_the_daemon_serves_the_viewer_only_when_enabled_and_stops_it():
         d.shutdown()
     with pytest.raises(OSError):
         FoxgloveClient(f"ws://127.0.0.1:{port}", timeout_s=2.0)
+    (recording,) = (wd / "rec").glob("coopd-vehicle1-*.mcap")  # closed complete at shutdown
+    # nothing was mapped (no camera): no /map message
+    assert {topic for topic, _ in recorded(recording)} == {"/status", "/tf", "/track"}
+
+    d = Daemon(config(enabled=True, port=port), merge_fn=None)
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # the drone install: no SDK
+    try:
+        with pytest.raises(StartupError, match="foxglove SDK is missing"):
+            d._start_viewer()
+    finally:
+        monkeypatch.undo()
+        d.shutdown()
 
     d = Daemon(config(), merge_fn=None)
     try:
