@@ -43,6 +43,9 @@ def parse_args():
     p.add_argument("--timeout", type=float, default=270.0, help="wall seconds before giving up")
     p.add_argument("--out", type=Path, default=ROOT / "out")
     p.add_argument("--keep", action="store_true", help="keep the work directory (configs, logs)")
+    p.add_argument("--record", action="store_true",
+                   help="every daemon records its flight to OUT/recordings/coopd-vehicle<ID>-<time>.mcap "
+                        "(pose, track, map updates, peers' frames, status; opens in the Foxglove app)")
     a = p.parse_args()
     if not 1 <= a.drones <= 10:
         p.error("--drones must be within 1..10")
@@ -67,9 +70,11 @@ def progress_line(swarm: Swarm, t0: float) -> str:
 
 def main() -> int:
     args = parse_args()
+    recordings, started_at = (args.out / "recordings").resolve(), time.time()
     swarm = Swarm(SwarmSettings(world=args.world, drones=args.drones, seed=args.seed, speed=args.speed,
                                 network=args.network, mavlink_base=args.port_base,
-                                sharing_port=args.port_base + 2660, autopilot=args.autopilot))
+                                sharing_port=args.port_base + 2660, autopilot=args.autopilot,
+                                config={"viewer": {"record_dir": str(recordings)}} if args.record else {}))
     interrupted = False
 
     def on_signal(*_):
@@ -106,7 +111,10 @@ def main() -> int:
         print("\ndemo: interrupted; stopping every process")
         return 130
     finally:
-        swarm.stop(keep_files=args.keep)
+        swarm.stop(keep_files=args.keep)  # the daemons close their recordings as they stop
+        if args.record:
+            files = [str(f) for f in sorted(recordings.glob("*.mcap")) if f.stat().st_mtime >= started_at]
+            print(f"demo: recordings (open in the Foxglove app): {', '.join(files) or 'none'}")
         if interrupted:
             print("demo: stopped; every process and namespace it made is gone")
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-EMULATOR_OR_TOOLS = {"mujoco", "scipy", "pillow", "firmware_sim"}
+EMULATOR_OR_TOOLS = {"mujoco", "scipy", "pillow", "firmware_sim", "foxglove-sdk"}
 
 
 def names(requirements) -> set[str]:
@@ -20,7 +20,9 @@ def test_drone_dependencies_leave_out_the_emulator_and_the_tools():
     assert not names(PROJECT["dependencies"]) & EMULATOR_OR_TOOLS
     extras = PROJECT["optional-dependencies"]
     assert names(extras["sim"]) == {"mujoco", "scipy"} and names(extras["tools"]) == {"pillow"}
+    assert names(extras["viewer"]) == {"foxglove-sdk"}
     assert "coopd[sim,tools]" in extras["test"]  # scripts/setup test: everything the tests use
+    assert "coopd[viewer]" in extras["test"]
 
 
 def imported(nodes) -> set[str]:
@@ -34,14 +36,16 @@ def imported(nodes) -> set[str]:
 
 
 def at_load(tree: ast.Module) -> list[ast.AST]:
-    """The nodes that run when the module loads: not function bodies, not TYPE_CHECKING blocks."""
-    out = []
-    for node in tree.body:
-        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+    """The nodes that run when the module loads: not function or method bodies, not TYPE_CHECKING blocks."""
+    out, todo = [], list(tree.body)
+    while todo:
+        node = todo.pop()
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
             continue
         if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
             continue
-        out.extend(ast.walk(node))
+        out.append(node)
+        todo.extend(ast.iter_child_nodes(node))
     return out
 
 
@@ -51,5 +55,6 @@ def test_product_package_never_imports_the_emulator_and_tools_only_on_use():
         tree = ast.parse(path.read_text())
         name = path.relative_to(ROOT)
         problems += [f"{name} imports {m}" for m in imported(ast.walk(tree)) & {"firmware_sim", "scipy"}]
-        problems += [f"{name} imports {m} when it loads" for m in imported(at_load(tree)) & {"mujoco", "PIL"}]
+        on_use = {"mujoco", "PIL", "foxglove"}
+        problems += [f"{name} imports {m} when it loads" for m in imported(at_load(tree)) & on_use]
     assert problems == []

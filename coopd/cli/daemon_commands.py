@@ -185,6 +185,15 @@ def format_status(s: dict) -> str:
                      f"last: nearest {'-' if nearest is None else f'{nearest} m'}, "
                      f"{ob.get('sectors_no_data', '-')} sectors no data, {ob.get('sectors_free', '-')} free; "
                      f"{ob.get('no_pose', '-')} without a pose"))
+    vw = s.get("viewer") or {}
+    if vw.get("enabled"):
+        rows.append(("viewer", f"{vw.get('url') or 'not served'} at {vw.get('rate_hz', '-')} Hz; "
+                     f"{vw.get('bricks', '-')} bricks shown, {vw.get('bricks_sent', '-')} sent, "
+                     f"{vw.get('bricks_deleted', '-')} deleted, {vw.get('errors', '-')} errors"))
+        rec = vw.get("recording")
+        if rec:
+            rows.append(("recording", f"{rec['path']}, {_mib(rec['bytes'])}"
+                         + ("" if rec["open"] else f", stopped: {rec['stopped'] or 'closed'}")))
     stalled = (s.get("watchdog") or {}).get("stalled_threads") or {}
     if stalled:
         rows.append(("health", "not healthy (watchdog not fed): "

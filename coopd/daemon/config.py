@@ -288,6 +288,22 @@ class ObstaclesConfig:
 
 
 @dataclass(frozen=True)
+class ViewerConfig:
+    """[viewer]: a live view of the map for the Foxglove app (the foxglove-sdk extra), off by default."""
+
+    enabled: bool = _key("serve the live view (the viewer extra; off unless the file turns it on)", False)
+    host: str = _key("address the viewer listens on; the protocol has no authentication", "127.0.0.1",
+                     _ip_address)
+    port: int = _key("WebSocket port of the viewer", 8765, _between(1, 65535))
+    rate_hz: float = _key("map, pose and status updates per second", 1.0, _between(0.1, 10.0, " Hz"))
+    colour: str = _key("occupied cells coloured by height or by source (own map or peers')", "height",
+                       _one_of("height", "source"))
+    record_dir: str = _key("record the same channels to an MCAP file per start here; empty: no recording",
+                           "", _absolute_path(allow_empty=True))
+    record_max_mb: int = _key("a recording stops at this size, MiB", 1024, _between(1, 1 << 20, " MiB"))
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     """[daemon]: process-wide settings."""
 
@@ -321,6 +337,7 @@ class Config:
     sharing: SharingConfig = field(default_factory=SharingConfig)
     merging: MergingConfig = field(default_factory=MergingConfig)
     obstacles: ObstaclesConfig = field(default_factory=ObstaclesConfig)
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
     @classmethod

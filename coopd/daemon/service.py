@@ -10,6 +10,7 @@
 | coopd-sharing   | sharing 0   | starts the sharing service (its threads inherit), publishes |
 | coopd-merging   | merging +10 | Merger.run: local + received -> global map                   |
 | coopd-obstacles | obstacles -3| ObstacleReporter.run: map near the vehicle -> FC ([obstacles]) |
+| coopd-viewer    | viewer +15  | MapViewer.run: map, poses, status -> Foxglove app ([viewer]) |
 | coopd-control   | control 0   | ControlServer: coopctl                                       |
 | main            | -           | run(): checkpoints, memory ledger, sd_notify STATUS, health  |
 | coopd-watchdog  | -           | WATCHDOG=1 while main, mapping, merging and sharing progress |
@@ -313,6 +314,7 @@ class Daemon:
             start_error=self.merge_start_error,
         )
         self.obstacles = self._make_obstacles() if config.obstacles.enabled else None
+        self.viewer = None
         self.control = ControlServer(
             config.daemon.control_socket,
             {
@@ -422,6 +424,31 @@ class Daemon:
         except ValueError as e:
             raise StartupError(str(e)) from e
 
+    def _start_viewer(self):
+        """The live view's server ([viewer]); foxglove is imported only here, when it is enabled."""
+        from coopd.daemon.merger import in_global_map
+        from coopd.daemon.viewer import MapViewer
+
+        viewer = MapViewer(
+            self.config.viewer,
+            local_map=lambda: (self.mapper.grid, self.mapper.lock),
+            global_map=self.merger.global_map,
+            pose=lambda: None if self.link.odometry_stale() else self.link.poses.latest(),
+            peers=lambda: {vid: np.reshape(entry["transform"], (4, 4))
+                           for vid, entry in list(self.merger.offsets.items())
+                           if in_global_map(entry) and "transform" in entry},
+            status=lambda: status_report.build(self),
+            vehicle_id=self.vehicle_id,
+        )
+        try:
+            viewer.start()
+        except ImportError as e:
+            raise StartupError(f"viewer: the foxglove SDK is missing ({e}); pip install 'coopd[viewer]' "
+                               "or set [viewer] enabled = false") from e
+        except Exception as e:
+            raise StartupError(f"viewer on {self.config.viewer.host}:{self.config.viewer.port}: {e}") from e
+        return viewer
+
     def _load_origin(self) -> np.ndarray | None:
         path = self.state_dir / FRAME_FILE
         try:
@@ -474,6 +501,9 @@ class Daemon:
         self._spawn("coopd-merging", "merging", self.merger.run)
         if self.obstacles is not None:
             self._spawn("coopd-obstacles", "obstacles", self.obstacles.run)
+        if self.config.viewer.enabled or self.config.viewer.record_dir:
+            self.viewer = self._start_viewer()
+            self._spawn("coopd-viewer", "viewer", self.viewer.run)
         self.watchdog.start()
         self.state = "running"
         self.notifier.ready(self.summary())
@@ -565,6 +595,8 @@ class Daemon:
         self.merger.stop()
         if self.obstacles is not None:
             self.obstacles.stop()
+        if self.viewer is not None:
+            self.viewer.stop()
         self.camera.stop()
         self.link.stop()
         for t in self._threads:

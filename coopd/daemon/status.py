@@ -83,6 +83,7 @@ def build(daemon) -> dict:
         "merges": merges,
         "merging": merges["state"],
         "obstacles": {"enabled": False} if daemon.obstacles is None else daemon.obstacles.status(),
+        "viewer": {"enabled": False} if daemon.viewer is None else daemon.viewer.status(),
         "memory": {**daemon.budget.snapshot(), **daemon.rss_watch.status()},
         "threads": threads(daemon),
         "control": daemon.control.stats(),

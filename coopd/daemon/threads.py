@@ -24,9 +24,10 @@ ROLE_NICE = {
     "sharing": 0,
     "control": 0,
     "merging": 10,
+    "viewer": 15,
 }
 """Nice per role (design: mavlink highest; camera, mapping, obstacles high; sharing, control normal;
-merging low)."""
+merging low; the operator's live view lowest)."""
 
 
 @dataclass(frozen=True)

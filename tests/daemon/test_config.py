@@ -94,6 +94,11 @@ BAD = [
     ("[obstacles]\nmin_distance_m = 2.0\nmax_distance_m = 1.0", "obstacles.min_distance_m", "not below"),
     ("[obstacles]\nband_below_m = -0.1", "obstacles.band_below_m", "outside"),
     ("[obstacles]\nenabled = 'yes'", "obstacles.enabled", "true or false"),
+    ("[viewer]\nport = 0", "viewer.port", "outside"),
+    ("[viewer]\nhost = 'localhost'", "viewer.host", "IP address"),
+    ("[viewer]\nrate_hz = 100", "viewer.rate_hz", "outside"),
+    ("[viewer]\ncolour = 'rainbow'", "viewer.colour", "one of"),
+    ("[viewer]\nenabled = 'yes'", "viewer.enabled", "true or false"),
     ("[daemon]\nmemory_mb = 8", "daemon.memory_mb", "outside"),
     ("[daemon]\nlog_level = 'verbose'", "daemon.log_level", "one of"),
     ("[daemon]\nstate_dir = 'var/lib'", "daemon.state_dir", "absolute"),
@@ -144,6 +149,14 @@ def test_syntax_and_file_errors(tmp_path):
 
 def test_default_file_is_plain_toml():
     assert set(tomllib.loads(ETC.read_text())) == {f.name for f in dataclasses.fields(Config)}
+
+
+def test_viewer_is_off_by_default_on_loopback_and_turned_on_by_the_file():
+    viewer = Config.defaults().viewer
+    assert viewer.enabled is False and viewer.host == "127.0.0.1" and viewer.port == 8765
+    c = parse_config("[viewer]\nenabled = true\nhost = '::1'\nport = 9000\ncolour = 'source'\n")
+    assert c.viewer.enabled and c.viewer.host == "::1" and c.viewer.port == 9000
+    assert c.viewer.colour == "source"
 
 
 def test_obstacles_are_off_by_default_and_turned_on_by_the_file():
