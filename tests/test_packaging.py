@@ -19,7 +19,7 @@ def names(requirements) -> set[str]:
 def test_drone_dependencies_leave_out_the_emulator_and_the_tools():
     assert not names(PROJECT["dependencies"]) & EMULATOR_OR_TOOLS
     extras = PROJECT["optional-dependencies"]
-    assert names(extras["sim"]) == {"mujoco", "scipy"} and names(extras["tools"]) == {"pillow"}
+    assert names(extras["sim"]) == {"mujoco"} and names(extras["tools"]) == {"pillow"}
     assert names(extras["viewer"]) == {"foxglove-sdk"}
     assert "coopd[sim,tools]" in extras["test"]  # scripts/setup test: everything the tests use
     assert "coopd[viewer]" in extras["test"]

@@ -2,7 +2,7 @@
 scripts/install does (setuptools removed), and the venv's site-packages summed per distribution.
 
 Prints JSON and writes out/bench/install_size.json. The goal: at most 600 MB, and nothing in it
-that only the emulator (mujoco and its GL/UI packages, scipy) or the map tools (Pillow) use.
+that only the emulator (mujoco and its GL/UI packages) or the map tools (Pillow) use.
 Usage: scripts/bench install_size [--extras sim,tools] [--keep DIR]
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 GOAL_MB = 600
-NOT_ON_A_DRONE = {"mujoco", "scipy", "glfw", "pyopengl", "pillow", "absl-py", "etils"}
+NOT_ON_A_DRONE = {"mujoco", "glfw", "pyopengl", "pillow", "absl-py", "etils"}
 """Distributions only the emulator (coopd[sim]) or the map tools (coopd[tools]) need."""
 
 MEASURE = r"""
