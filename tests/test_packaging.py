@@ -8,7 +8,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-EMULATOR_OR_TOOLS = {"mujoco", "scipy", "pillow", "firmware_sim", "foxglove-sdk"}
+EMULATOR_OR_TOOLS = {"mujoco", "pillow", "firmware_sim", "foxglove-sdk"}
 
 
 def names(requirements) -> set[str]:
