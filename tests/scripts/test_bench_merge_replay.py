@@ -53,7 +53,11 @@ def test_replay_runs_every_rule_set_and_the_new_rules_end_with_both_pairs_right(
     assert all(r["pairs"] == 2 and r["snapshots"] == 2 for r in rows)
     assert all(r["right"] + r["wrong"] + r["not_merged"] == 2 for r in rows)
     old, rechecks, new = rows
-    assert rechecks["right"] == 2 and rechecks["rechecks"] >= 1 and old["rechecks"] == 0
+    assert rechecks["right"] == 2 and old["rechecks"] == 0
+    # on the early maps the flip is either accepted and then rechecked away, or (sub-cell refinement
+    # scores both fits alike) left out as contested until the later maps decide it
+    early = {p["history"][0] for p in rechecks["detail"].values()}
+    assert rechecks["rechecks"] >= 1 or early == {"."}, (rechecks["rechecks"], early)
     assert new["right"] == 2 and new["wrong"] == 0 and new["wrong_states"] == 0
     assert rechecks["held_states"] == 0 and new["held_states"] >= 2  # every first fit held
     assert all(len(p["history"]) == 2 for p in rechecks["detail"].values())
