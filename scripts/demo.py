@@ -21,6 +21,7 @@ sys.path.insert(0, str(ROOT))
 from coopd.daemon import control  # noqa: E402
 from coopd.io import export_png_top, load_cmap  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
+from coopd.io.png import map_title  # noqa: E402
 from coopd.sharing.wire import decode_map  # noqa: E402
 from firmware_sim.swarm import Swarm, SwarmSettings  # noqa: E402
 from firmware_sim.worlds import GENERATORS, world_name  # noqa: E402
@@ -171,8 +172,11 @@ def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
                                                max_blob_bytes=512 * 1024 * 1024)
             cmap = out / f"global_{vid}.cmap"
             write_atomic(cmap, blob)
-            grid, _ = load_cmap(cmap)
-            export_png_top(grid, out / f"global_{vid}.png")
+            grid, meta = load_cmap(cmap)
+            tracks, left_out = swarm.tracks_in_map(i, statuses)
+            export_png_top(grid, out / f"global_{vid}.png", title=map_title(grid.resolution, vid, meta.stamp),
+                           tracks=tracks, notes=[f"drone {j}: not merged into this map, track not drawn"
+                                                 for j in left_out])
             print(f"   wrote {cmap} and {out / f'global_{vid}.png'}")
             entry["global"] = g = swarm.map_accuracy(i, grid, s)
             _, blob = swarm.daemons[i].request("dump-map", {"map": "local"}, timeout_s=60.0,
