@@ -63,15 +63,16 @@ def demo_config(args, recordings: Path) -> dict:
 
 
 def obstacles_line(status: dict, fc_received: int | None) -> str:
-    """The report's OBSTACLE_DISTANCE line of one drone: what its daemon sent, what its FC got."""
+    """The report's OBSTACLE_DISTANCE line of one drone: what its daemon had sent at its last status,
+    what its FC has received by the time of the report."""
     ob = status.get("obstacles") or {}
     if not ob.get("enabled"):
         return "obstacles: not enabled"
     nearest = ob.get("nearest_m")
     return (f"obstacles: {ob.get('sent', 0)} OBSTACLE_DISTANCE sent at {ob.get('rate_hz')} Hz "
             f"({ob.get('with_global', 0)} with the global map, {ob.get('no_pose', 0)} without a pose), "
-            f"{'-' if fc_received is None else fc_received} received by the FC; last nearest "
-            f"{'-' if nearest is None else f'{nearest} m'}")
+            f"last nearest {'-' if nearest is None else f'{nearest} m'}; the FC has received "
+            f"{'-' if fc_received is None else fc_received} by now (the daemon kept sending)")
 
 
 def summary(s: dict | None) -> str:

@@ -20,6 +20,7 @@ LABELS = ("unknown", "free", "occupied", "inaccessible")
 TRACK_COLOURS = ((0, 90, 220), (230, 120, 0), (0, 150, 60), (190, 0, 190), (0, 160, 170),
                  (140, 90, 20), (90, 60, 200), (220, 0, 90), (100, 130, 0), (0, 60, 120))
 """One colour per drone track, none of them a class colour (drones beyond ten reuse them)."""
+ORIGIN_COLOUR = (0, 150, 0)
 LEGEND_HEIGHT = 24
 LEGEND_MIN_WIDTH = 360
 TARGET_SIZE = 512
@@ -166,7 +167,7 @@ def render_top(classes: np.ndarray, layout: TopLayout) -> "Image.Image":
     black = (0, 0, 0)
     canvas = Image.new("RGB", layout.size, (255, 255, 255))
     left, top, right, bottom = layout.map_box
-    canvas.paste(Image.fromarray(_class_pixels(classes, COLOURS, layout.scale), "RGB"), (left, top))
+    canvas.paste(_map_with_tracks(classes, layout), (left, top))
     draw = ImageDraw.Draw(canvas)
     draw.text(layout.title_px, layout.title, fill=black)
     draw.rectangle([left - 1, top - 1, right, bottom], outline=black)
@@ -180,18 +181,6 @@ def render_top(classes: np.ndarray, layout: TopLayout) -> "Image.Image":
     x0, x1, y = layout.scale_bar
     draw.rectangle([x0, y - 2, x1 - 1, y + 2], fill=black)
     draw.text((x1 + 8, y - 6), f"{layout.scale_bar_m:g} m", fill=black)
-    if layout.origin_px is not None:
-        ox, oy = layout.origin_px
-        draw.line([ox - 7, oy, ox + 7, oy], fill=(0, 160, 0), width=2)
-        draw.line([ox, oy - 7, ox, oy + 7], fill=(0, 160, 0), width=2)
-        draw.text((ox + 4, oy + 3), "origin", fill=(0, 120, 0))
-    for k, track in enumerate(layout.tracks):
-        colour = TRACK_COLOURS[k % len(TRACK_COLOURS)]
-        if len(track.points_px) > 1:
-            draw.line(track.points_px, fill=colour, width=2, joint="curve")
-        ex, ey = track.points_px[-1]
-        draw.ellipse([ex - 5, ey - 5, ex + 5, ey + 5], fill=colour, outline=black)
-        draw.text(track.label_px, track.label, fill=colour)
     swatch_colours = [*COLOURS, *(TRACK_COLOURS[k % len(TRACK_COLOURS)] for k in range(len(layout.tracks)))]
     for k, (x, y, label) in enumerate(layout.legend):
         if k < layout.swatches:
@@ -200,6 +189,33 @@ def render_top(classes: np.ndarray, layout: TopLayout) -> "Image.Image":
             draw.text((x, y), label, fill=black)
     canvas.info["Title"] = layout.title
     return canvas
+
+
+def _map_with_tracks(classes: np.ndarray, layout: TopLayout) -> "Image.Image":
+    """The map's pixels with the origin marker and the tracks drawn on them, cut at the map's
+    edges (a track leaving the mapped area must not run over the axes or the title)."""
+    Image, ImageDraw, _ = _pillow()
+    image = Image.fromarray(_class_pixels(classes, COLOURS, layout.scale), "RGB")
+    draw = ImageDraw.Draw(image)
+    left, top = layout.map_box[:2]
+
+    def here(point):
+        return point[0] - left, point[1] - top
+
+    if layout.origin_px is not None:
+        ox, oy = here(layout.origin_px)
+        draw.line([ox - 7, oy, ox + 7, oy], fill=ORIGIN_COLOUR, width=2)
+        draw.line([ox, oy - 7, ox, oy + 7], fill=ORIGIN_COLOUR, width=2)
+        draw.text((ox - 4 - draw.textlength("origin"), oy + 3), "origin", fill=ORIGIN_COLOUR)
+    for k, track in enumerate(layout.tracks):
+        colour = TRACK_COLOURS[k % len(TRACK_COLOURS)]
+        points = [here(p) for p in track.points_px]
+        if len(points) > 1:
+            draw.line(points, fill=colour, width=2, joint="curve")
+        ex, ey = points[-1]
+        draw.ellipse([ex - 5, ey - 5, ex + 5, ey + 5], fill=colour, outline=(0, 0, 0))
+        draw.text(here(track.label_px), track.label, fill=colour)
+    return image
 
 
 def export_png_top(grid: OccupancyGrid, path, threshold: int = OCCUPIED_THRESHOLD, title: str = "",

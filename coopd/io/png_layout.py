@@ -16,7 +16,7 @@ AXIS_HEIGHT = 18
 """Room under the map for the x axis' tick labels."""
 SCALE_BAR_HEIGHT = 24
 LEGEND_ROW = 18
-TICK_SPACING_PX = 70
+TICK_SPACING_PX = 50
 """Axis ticks are a round number of metres apart, at least about this many pixels."""
 SCALE_BAR_FRACTION = 0.25
 """The scale bar is the longest round length up to this fraction of the map's width."""

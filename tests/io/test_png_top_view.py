@@ -6,8 +6,18 @@ import pytest
 from PIL import Image
 
 from coopd.grid import OccupancyGrid
-from coopd.io.png import COLOURS, FREE, LABELS, OCCUPIED, TRACK_COLOURS, export_png_top, map_title, scale_for
-from coopd.io.png_layout import metres_text, round_length, top_layout
+from coopd.io.png import (
+    COLOURS,
+    FREE,
+    LABELS,
+    OCCUPIED,
+    ORIGIN_COLOUR,
+    TRACK_COLOURS,
+    export_png_top,
+    map_title,
+    scale_for,
+)
+from coopd.io.png_layout import TICK_SPACING_PX, metres_text, round_length, top_layout
 
 
 def room() -> OccupancyGrid:
@@ -47,7 +57,7 @@ def test_axes_ticks_sit_at_their_metres():
         assert y == round(bottom - (float(label) + 1.05) * 40) and top <= y <= bottom
     assert "0" in [label for _, label in layout.x_ticks] and "0" in [label for _, label in layout.y_ticks]
     steps = np.diff([float(label) for _, label in layout.x_ticks])
-    assert np.allclose(steps, steps[0]) and steps[0] * 40 >= 70
+    assert np.allclose(steps, steps[0]) and steps[0] * 40 >= TICK_SPACING_PX
 
 
 def test_origin_and_track_points_land_on_their_cells(tmp_path):
@@ -71,7 +81,7 @@ def test_origin_and_track_points_land_on_their_cells(tmp_path):
     mid = np.mean(drawn.points_px[1:3], axis=0)
     assert image.getpixel((int(round(mid[0])), int(round(mid[1])))) == colour  # the polyline between points
     ox, oy = layout.origin_px
-    assert image.getpixel((int(ox) + 5, int(oy))) == (0, 160, 0)  # the origin cross
+    assert image.getpixel((int(ox) + 5, int(oy))) == ORIGIN_COLOUR  # the origin cross
 
 
 def test_title_and_notes_make_room_and_are_recorded(tmp_path):
@@ -103,3 +113,14 @@ def test_a_map_away_from_its_origin_has_no_origin_marker():
                                          (10.0, "10")])
 def test_metres_text(value, text):
     assert metres_text(value) == text
+
+
+def test_a_track_leaving_the_map_stops_at_its_edge(tmp_path):
+    grid = room()
+    layout = export_png_top(grid, tmp_path / "top.png", tracks={1: [[0.0, 0.0], [0.0, 20.0]]})
+    image = Image.open(tmp_path / "top.png").convert("RGB")
+    column = int(layout.origin_px[0])
+    top = layout.map_box[1]
+    assert image.getpixel((column, top + 2)) == TRACK_COLOURS[0]  # inside the map, up to its edge
+    assert image.getpixel((column, top - 1)) == (0, 0, 0)  # the map's frame line, not the track
+    assert image.getpixel((column, top - 3)) == (255, 255, 255)  # nothing drawn above the map
