@@ -211,3 +211,28 @@ def drift_since(odometry, t_origin: float, t_end: float) -> tuple[float, float]:
     p1 = odometry.drift(t_end)[1]
     turned = odometry.drift_yaw_rate * (odometry.drift_time(t_end) - odometry.drift_time(t_origin))
     return float(np.linalg.norm(p1 - p0)), abs(math.degrees(turned))
+
+
+MAX_TRACK_POINTS = 2000
+"""A drawn track keeps at most this many positions (evenly spaced in time)."""
+
+
+def tracks_in_frame(trajectories: dict[int, np.ndarray], frame_from_world: dict[int, np.ndarray | None]
+                    ) -> tuple[dict[int, np.ndarray], list[int]]:
+    """Each vehicle's (N, 2) x/y positions in one map's frame, for a top view: trajectories are
+    rows (t, x, y, z, ...) in the world; frame_from_world[vid] carries vehicle vid's positions
+    into the map's frame (4x4), or is None when that is not known (then vid is in the second
+    list, drawn nowhere). Long tracks are thinned to MAX_TRACK_POINTS, keeping the last position."""
+    tracks, left_out = {}, []
+    for vid, trajectory in sorted(trajectories.items()):
+        transform = frame_from_world.get(vid)
+        trajectory = np.asarray(trajectory, dtype=np.float64)
+        if transform is None:
+            left_out.append(vid)
+            continue
+        if trajectory.ndim != 2 or len(trajectory) == 0:
+            continue
+        count = min(len(trajectory), MAX_TRACK_POINTS)
+        keep = np.unique(np.linspace(0, len(trajectory) - 1, count).astype(int))
+        tracks[vid] = transform_points(transform)(trajectory[keep, 1:4])[:, :2]
+    return tracks, left_out

@@ -447,6 +447,23 @@ class Swarm:
             }
         return out
 
+    def tracks_in_map(self, i: int, statuses: list[dict | None]) -> tuple[dict[int, np.ndarray], list[int]]:
+        """Every drone's true track in drone i's map frame, for its global map's top view: its own
+        through where its map frame truly is, another's through drone i's merge estimate of that
+        drone's map (a merge error shows as a track off the walls); drones not merged into drone i's
+        global map are in the second list (see accuracy.tracks_in_frame)."""
+        to_map_i = invert(self.map_to_world(i, statuses[i]))
+        merged = self.merged_vehicles(statuses[i])
+        frames: dict[int, np.ndarray | None] = {i + 1: to_map_i}
+        for j in range(self.settings.drones):
+            entry = merged.get(j + 1)
+            if j != i:
+                frames[j + 1] = None if entry is None or not statuses[j] else (
+                    np.array(entry["transform"], float).reshape(4, 4)
+                    @ invert(self.map_to_world(j, statuses[j])))
+        trajectories = {j + 1: self.sim.trajectory(j) for j in range(self.settings.drones)}
+        return acc.tracks_in_frame(trajectories, frames)
+
     def map_accuracy(self, i: int, grid, status: dict | None) -> dict:
         """Occupied-cell precision/recall of a map of drone i (its frame) vs the world's ground truth
         in the region it explored, and the odometry drift the emulator put in since its map origin."""

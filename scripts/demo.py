@@ -21,6 +21,7 @@ sys.path.insert(0, str(ROOT))
 from coopd.daemon import control  # noqa: E402
 from coopd.io import export_png_top, load_cmap  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
+from coopd.io.png import map_title  # noqa: E402
 from coopd.sharing.wire import decode_map  # noqa: E402
 from firmware_sim.swarm import Swarm, SwarmSettings  # noqa: E402
 from firmware_sim.worlds import GENERATORS, world_name  # noqa: E402
@@ -52,6 +53,28 @@ def parse_args():
     return a
 
 
+def demo_config(args, recordings: Path) -> dict:
+    """coopd.toml sections every drone's daemon gets on top of the swarm's: each sends its flight
+    controller OBSTACLE_DISTANCE from its global map; with --record, a recording of the flight."""
+    config = {"obstacles": {"enabled": True}}
+    if args.record:
+        config["viewer"] = {"record_dir": str(recordings)}
+    return config
+
+
+def obstacles_line(status: dict, fc_received: int | None) -> str:
+    """The report's OBSTACLE_DISTANCE line of one drone: what its daemon had sent at its last status,
+    what its FC has received by the time of the report."""
+    ob = status.get("obstacles") or {}
+    if not ob.get("enabled"):
+        return "obstacles: not enabled"
+    nearest = ob.get("nearest_m")
+    return (f"obstacles: {ob.get('sent', 0)} OBSTACLE_DISTANCE sent at {ob.get('rate_hz')} Hz "
+            f"({ob.get('with_global', 0)} with the global map, {ob.get('no_pose', 0)} without a pose), "
+            f"last nearest {'-' if nearest is None else f'{nearest} m'}; the FC has received "
+            f"{'-' if fc_received is None else fc_received} by now (the daemon kept sending)")
+
+
 def summary(s: dict | None) -> str:
     if not s:
         return "starting"
@@ -74,7 +97,7 @@ def main() -> int:
     swarm = Swarm(SwarmSettings(world=args.world, drones=args.drones, seed=args.seed, speed=args.speed,
                                 network=args.network, mavlink_base=args.port_base,
                                 sharing_port=args.port_base + 2660, autopilot=args.autopilot,
-                                config={"viewer": {"record_dir": str(recordings)}} if args.record else {}))
+                                config=demo_config(args, recordings)))
     interrupted = False
 
     def on_signal(*_):
@@ -149,6 +172,9 @@ def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
         errors = swarm.offset_errors(i, statuses)
         print(f"drone {vid}: {m.get('known', 0)} cells mapped, {received} maps received, "
               f"{(s.get('merges') or {}).get('done', 0)} merges, {len(errors)}/{n - 1} maps merged")
+        link = swarm.sim.vehicles[i].link
+        fc_received = None if link is None else link.stats.get("obstacle_distance")
+        print(f"   {obstacles_line(s, fc_received)}")
         for j in range(n):
             if j == i:
                 continue
@@ -164,15 +190,18 @@ def report(swarm: Swarm, args, statuses, elapsed: float) -> int:
         entry = {"drone": vid, "merged": len(errors), "pairs": [
             {"peer": j + 1, "merged": j + 1 in errors,
              **({k: round(errors[j + 1][k], 4) for k in ("error_m", "error_deg")} if j + 1 in errors else {})}
-            for j in range(n) if j != i]}
+            for j in range(n) if j != i], "obstacle_distance_fc_received": fc_received}
         drones.append(entry)
         try:
             _, blob = swarm.daemons[i].request("dump-map", {"map": "global"}, timeout_s=60.0,
                                                max_blob_bytes=512 * 1024 * 1024)
             cmap = out / f"global_{vid}.cmap"
             write_atomic(cmap, blob)
-            grid, _ = load_cmap(cmap)
-            export_png_top(grid, out / f"global_{vid}.png")
+            grid, meta = load_cmap(cmap)
+            tracks, left_out = swarm.tracks_in_map(i, statuses)
+            export_png_top(grid, out / f"global_{vid}.png", title=map_title(grid.resolution, vid, meta.stamp),
+                           tracks=tracks, notes=[f"drone {j}: not merged into this map, track not drawn"
+                                                 for j in left_out])
             print(f"   wrote {cmap} and {out / f'global_{vid}.png'}")
             entry["global"] = g = swarm.map_accuracy(i, grid, s)
             _, blob = swarm.daemons[i].request("dump-map", {"map": "local"}, timeout_s=60.0,

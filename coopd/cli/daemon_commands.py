@@ -348,7 +348,7 @@ def run_dump_map(args) -> int:
     if blob is None:
         raise ValueError("the daemon sent no map")
     grid, meta = decode_map(blob, limits)  # validates (CRC, size) before anything is written
-    written = write_map(grid, args.output, fmt, args.z, lambda: blob)
+    written = write_map(grid, args.output, fmt, args.z, lambda: blob, meta)
     counts = grid.counts()
     dumped = {**written, "map": result.get("map", args.map), "vehicle_id": meta.vehicle_id,
               "map_version": meta.version, "shape": list(grid.shape), "known": counts.known}

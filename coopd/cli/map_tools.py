@@ -139,11 +139,14 @@ def check_z(fmt: str, z: float | None) -> None:
         raise CommandError("--z applies to png output only", USAGE)
 
 
-def write_map(grid, out: Path, fmt: str, z: float | None, cmap_bytes) -> dict:
+def write_map(grid, out: Path, fmt: str, z: float | None, cmap_bytes, meta=None) -> dict:
     """Write `grid` to `out` as `fmt`; returns what was written (for the text line and --json).
-    `cmap_bytes()` gives the message a .cmap holds (the daemon's exact bytes, or a re-encoding)."""
+    `cmap_bytes()` gives the message a .cmap holds (the daemon's exact bytes, or a re-encoding);
+    `meta` (the map's MapMeta) titles a top view with the vehicle and the map's time."""
     from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
     from coopd.io.atomic import write_atomic
+    from coopd.io.maps import FOREIGN_VEHICLE_ID
+    from coopd.io.png import map_title
 
     written = {"file": str(out), "format": fmt}
     if fmt == "cmap":
@@ -153,8 +156,10 @@ def write_map(grid, out: Path, fmt: str, z: float | None, cmap_bytes) -> dict:
     if fmt == "ply":
         return {**written, "points": export_ply(grid, out)}
     if fmt == "png" and z is None:
-        export_png_top(grid, out)
-        return {**written, "view": "top"}
+        vehicle = None if meta is None or meta.vehicle_id == FOREIGN_VEHICLE_ID else meta.vehicle_id
+        title = map_title(grid.resolution, vehicle, meta.stamp if meta is not None else None)
+        export_png_top(grid, out, title=title)
+        return {**written, "view": "top", "title": title}
     if fmt == "png":
         export_png_slice(grid, out, z)
         return {**written, "view": "slice", "z_m": z}
@@ -181,7 +186,7 @@ def run_convert(args) -> int:
     check_z(args.to, args.z)
     grid, meta = load_map(args.file, _limits(args))
     out = args.output or default_output(args.file, args.to, args.z)
-    written = write_map(grid, out, args.to, args.z, lambda: encode_map(grid, meta, args.encoding))
+    written = write_map(grid, out, args.to, args.z, lambda: encode_map(grid, meta, args.encoding), meta)
     emit(args, {"source": str(args.file), **written}, written_text(written))
     return OK.code
 

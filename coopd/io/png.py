@@ -9,6 +9,7 @@ from coopd.grid import OccupancyGrid, transform_grid
 from coopd.grid.cells import OCCUPIED_THRESHOLD
 
 from .atomic import write_atomic
+from .png_layout import TopLayout, top_layout
 
 if TYPE_CHECKING:
     from PIL import Image
@@ -16,6 +17,10 @@ if TYPE_CHECKING:
 UNKNOWN, FREE, OCCUPIED, INACCESSIBLE = 0, 1, 2, 3
 COLOURS = np.array([(128, 128, 128), (255, 255, 255), (0, 0, 0), (200, 0, 0)], dtype=np.uint8)
 LABELS = ("unknown", "free", "occupied", "inaccessible")
+TRACK_COLOURS = ((0, 90, 220), (230, 120, 0), (0, 150, 60), (190, 0, 190), (0, 160, 170),
+                 (140, 90, 20), (90, 60, 200), (220, 0, 90), (100, 130, 0), (0, 60, 120))
+"""One colour per drone track, none of them a class colour (drones beyond ten reuse them)."""
+ORIGIN_COLOUR = (0, 150, 0)
 LEGEND_HEIGHT = 24
 LEGEND_MIN_WIDTH = 360
 TARGET_SIZE = 512
@@ -102,19 +107,30 @@ def render(classes: np.ndarray, title: str, colours: np.ndarray = COLOURS, label
     """An RGB image of (m_x, m_y) classes, x to the right, y (north) up, legend underneath."""
     Image, ImageDraw, _ = _pillow()
     s = scale_for(classes.shape)
-    rgb = colours[classes.T[::-1]]
-    rgb = np.repeat(np.repeat(rgb, s, axis=0), s, axis=1)
+    rgb = _class_pixels(classes, colours, s)
     h, w = rgb.shape[:2]
     canvas = Image.new("RGB", (max(w, LEGEND_MIN_WIDTH), h + LEGEND_HEIGHT), (255, 255, 255))
     canvas.paste(Image.fromarray(rgb, "RGB"), (0, 0))
     draw = ImageDraw.Draw(canvas)
     x = 4
     for colour, label in zip(colours, labels, strict=True):
-        draw.rectangle([x, h + 6, x + 12, h + 18], fill=tuple(int(c) for c in colour), outline=(0, 0, 0))
-        draw.text((x + 16, h + 6), label, fill=(0, 0, 0))
+        _swatch(draw, (x, h + 6), colour, label)
         x += 20 + int(draw.textlength(label)) + 10
     canvas.info["Title"] = title
     return canvas
+
+
+def _class_pixels(classes: np.ndarray, colours: np.ndarray, scale: int) -> np.ndarray:
+    """(rows, columns, 3) colours of (m_x, m_y) classes, north up, each cell scale x scale pixels."""
+    rgb = colours[classes.T[::-1]]
+    return np.repeat(np.repeat(rgb, scale, axis=0), scale, axis=1)
+
+
+def _swatch(draw, at, colour, label: str) -> None:
+    """One legend entry: a 12-pixel colour square with its label to the right."""
+    x, y = at
+    draw.rectangle([x, y, x + 12, y + 12], fill=tuple(int(c) for c in colour), outline=(0, 0, 0))
+    draw.text((x + 16, y), label, fill=(0, 0, 0))
 
 
 def _save(image: "Image.Image", path) -> None:
@@ -126,9 +142,96 @@ def _save(image: "Image.Image", path) -> None:
     write_atomic(path, buf.getvalue())
 
 
-def export_png_top(grid: OccupancyGrid, path, threshold: int = OCCUPIED_THRESHOLD) -> None:
-    """Top view of the whole map as a PNG with a legend."""
-    _save(render(top_classes(grid, threshold), f"coopd map top view, {grid.resolution} m/cell"), path)
+def map_title(resolution: float, vehicle_id: int | None = None, stamp: float | None = None) -> str:
+    """A top view's title: whose map, when (UTC), the resolution."""
+    import datetime
+
+    parts = ["coopd map" if vehicle_id is None else f"coopd map of vehicle {vehicle_id}"]
+    if stamp:
+        when = datetime.datetime.fromtimestamp(stamp, datetime.UTC)
+        parts.append(when.strftime("%Y-%m-%d %H:%M:%S UTC"))
+    return ", ".join([*parts, f"{resolution:g} m/cell"])
+
+
+def top_view_layout(grid: OccupancyGrid, title: str, tracks=None, notes=(), text_width=None) -> TopLayout:
+    """The layout export_png_top draws for `grid` (see coopd.io.png_layout.top_layout)."""
+    extra = {} if text_width is None else {"text_width": text_width}
+    return top_layout(grid.shape[:2], grid.offset[:2], grid.resolution, scale_for(grid.shape[:2]), title,
+                      LABELS, tracks, notes, **extra)
+
+
+def render_top(classes: np.ndarray, layout: TopLayout) -> "Image.Image":
+    """A floor-plan top view: classes (m_x, m_y) north up with metre axes, the map origin, a scale
+    bar, the drones' tracks and final positions, the title above and the legend underneath."""
+    Image, ImageDraw, _ = _pillow()
+    black = (0, 0, 0)
+    canvas = Image.new("RGB", layout.size, (255, 255, 255))
+    left, top, right, bottom = layout.map_box
+    canvas.paste(_map_with_tracks(classes, layout), (left, top))
+    draw = ImageDraw.Draw(canvas)
+    draw.text(layout.title_px, layout.title, fill=black)
+    draw.rectangle([left - 1, top - 1, right, bottom], outline=black)
+    for x, label in layout.x_ticks:
+        draw.line([x, bottom, x, bottom + 4], fill=black)
+        draw.text((x - draw.textlength(label) / 2, bottom + 5), label, fill=black)
+    for y, label in layout.y_ticks:
+        draw.line([left - 5, y, left - 1, y], fill=black)
+        draw.text((left - 8 - draw.textlength(label), y - 6), label, fill=black)
+    draw.text((right + 4, bottom + 5), "m", fill=black)
+    x0, x1, y = layout.scale_bar
+    draw.rectangle([x0, y - 2, x1 - 1, y + 2], fill=black)
+    draw.text((x1 + 8, y - 6), f"{layout.scale_bar_m:g} m", fill=black)
+    swatch_colours = [*COLOURS, *(TRACK_COLOURS[k % len(TRACK_COLOURS)] for k in range(len(layout.tracks)))]
+    for k, (x, y, label) in enumerate(layout.legend):
+        if k < layout.swatches:
+            _swatch(draw, (x, y), swatch_colours[k], label)
+        else:
+            draw.text((x, y), label, fill=black)
+    canvas.info["Title"] = layout.title
+    return canvas
+
+
+def _map_with_tracks(classes: np.ndarray, layout: TopLayout) -> "Image.Image":
+    """The map's pixels with the origin marker and the tracks drawn on them, cut at the map's
+    edges (a track leaving the mapped area must not run over the axes or the title)."""
+    Image, ImageDraw, _ = _pillow()
+    image = Image.fromarray(_class_pixels(classes, COLOURS, layout.scale), "RGB")
+    draw = ImageDraw.Draw(image)
+    left, top = layout.map_box[:2]
+
+    def here(point):
+        return point[0] - left, point[1] - top
+
+    if layout.origin_px is not None:
+        ox, oy = here(layout.origin_px)
+        draw.line([ox - 7, oy, ox + 7, oy], fill=ORIGIN_COLOUR, width=2)
+        draw.line([ox, oy - 7, ox, oy + 7], fill=ORIGIN_COLOUR, width=2)
+        draw.text((ox - 4 - draw.textlength("origin"), oy + 3), "origin", fill=ORIGIN_COLOUR)
+    for k, track in enumerate(layout.tracks):
+        colour = TRACK_COLOURS[k % len(TRACK_COLOURS)]
+        points = [here(p) for p in track.points_px]
+        if len(points) > 1:
+            draw.line(points, fill=colour, width=2, joint="curve")
+        ex, ey = points[-1]
+        draw.ellipse([ex - 5, ey - 5, ex + 5, ey + 5], fill=colour, outline=(0, 0, 0))
+        draw.text(here(track.label_px), track.label, fill=colour)
+    return image
+
+
+def export_png_top(grid: OccupancyGrid, path, threshold: int = OCCUPIED_THRESHOLD, title: str = "",
+                   tracks=None, notes=()) -> TopLayout:
+    """Top view of the whole map as a PNG: metre axes, origin, scale bar, title, legend and, when
+    given, each drone's track ({vehicle id: (N, 2) metres in this map's frame}) with its final
+    position. `notes` are extra legend lines. Returns the layout drawn."""
+    layout = top_view_layout(grid, title or map_title(grid.resolution), tracks, notes, _pillow_text_width())
+    _save(render_top(top_classes(grid, threshold), layout), path)
+    return layout
+
+
+def _pillow_text_width():
+    """How wide Pillow's default font draws a line, for the layout to leave room for it."""
+    Image, ImageDraw, _ = _pillow()
+    return ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength
 
 
 def export_png_slice(grid: OccupancyGrid, path, z_m: float, threshold: int = OCCUPIED_THRESHOLD) -> None:

@@ -161,6 +161,8 @@ def test_dump_map_exports(daemon, tmp_path, capsys):
     assert ply.startswith(b"ply") and f"element vertex {grid.counts().occupied}".encode() in ply
     assert main(["dump-map", "global", "-o", str(tmp_path / "g.png"), "--socket", daemon]) == 0
     assert Image.open(tmp_path / "g.png").size[0] > 0
+    vehicle = MAPS["global"][1].vehicle_id
+    assert Image.open(tmp_path / "g.png").info["Title"].startswith(f"coopd map of vehicle {vehicle}, ")
     assert main(["dump-map", "global", "-o", str(tmp_path / "s.png"), "--z", "0.3", "--socket", daemon]) == 0
     assert Image.open(tmp_path / "s.png").size[0] > 0
     assert main(["dump-map", "global", "-o", str(tmp_path / "g.bt"), "--socket", daemon]) == 0

@@ -56,12 +56,17 @@ def test_convert_writes_files(cmap, fmt, capsys):
         assert np.array_equal(back.cells, grid.cells)
 
 
-def test_convert_png_top_and_slice(cmap, tmp_path):
+def test_convert_png_top_and_slice(cmap, tmp_path, capsys):
     path, grid = cmap
-    assert main(["map", "convert", str(path), "--to", "png", "-o", str(tmp_path / "top.png")]) == 0
+    assert main(["map", "convert", str(path), "--to", "png", "-o", str(tmp_path / "top.png"), "--json"]) == 0
+    title = "coopd map of vehicle 1, 1970-01-01 00:01:40 UTC, 0.1 m/cell"
+    assert json.loads(capsys.readouterr().out)["title"] == title
     z_args = ["--z", "0.3", "-o", str(tmp_path / "z.png")]
     assert main(["map", "convert", str(path), "--to", "png", *z_args]) == 0
-    assert Image.open(tmp_path / "top.png").size == Image.open(tmp_path / "z.png").size
+    top, z = Image.open(tmp_path / "top.png"), Image.open(tmp_path / "z.png")
+    assert top.info["Title"] == title and z.info["Title"].startswith("coopd map slice z = 0.3 m")
+    # the top view adds the title above, the metre axes and the scale bar around the same map
+    assert top.size[0] > z.size[0] and top.size[1] > z.size[1]
 
 
 def test_errors_are_one_line_and_exit_1(tmp_path, capsys):

@@ -6,7 +6,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from firmware_sim.accuracy import map_accuracy, offset_error, transform_points
+from firmware_sim.accuracy import (
+    MAX_TRACK_POINTS,
+    map_accuracy,
+    offset_error,
+    tracks_in_frame,
+    transform_points,
+)
 
 RES = 0.1
 
@@ -132,3 +138,17 @@ def test_map_frame_in_world_carries_the_drift_at_the_origin_time():
     assert np.abs(naive - world_pts).max() > 0.1
     frames = map_frame_in_world(odo, origin, t0), map_frame_in_world(odo, origin)
     assert offset_error(*frames)[1] == pytest.approx(rot)
+
+
+def test_tracks_in_frame_carries_known_tracks_and_names_the_others():
+    t = np.arange(5000) / 25.0
+    flight = np.c_[t, np.cos(t / 10), np.sin(t / 10), np.full_like(t, 1.5), np.ones_like(t),
+                   np.zeros((5000, 3))]
+    yaw90 = np.array([[0.0, -1, 0, 2], [1, 0, 0, -1], [0, 0, 1, 0], [0, 0, 0, 1]])
+    tracks, left_out = tracks_in_frame({1: flight[:40], 2: flight, 3: flight, 4: np.zeros((0, 8))},
+                                       {1: np.eye(4), 2: yaw90, 3: None, 4: np.eye(4)})
+    assert left_out == [3] and sorted(tracks) == [1, 2]  # 4 flew nowhere: nothing to draw
+    assert np.allclose(tracks[1], flight[:40, 1:3])
+    assert len(tracks[2]) == MAX_TRACK_POINTS
+    assert np.allclose(tracks[2][0], [2 - flight[0, 2], -1 + flight[0, 1]])  # x' = 2 - y, y' = x - 1
+    assert np.allclose(tracks[2][-1], [2 - flight[-1, 2], -1 + flight[-1, 1]])  # the last position kept

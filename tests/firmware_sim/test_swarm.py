@@ -9,10 +9,13 @@ import sys
 import time
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from coopd.daemon.config import load_config
+from coopd.geometry import invert
 from firmware_sim.netns import netns_unavailable_reason
 from firmware_sim.swarm import NETNS_TAG, Swarm, SwarmSettings, render_config
 
@@ -113,3 +116,18 @@ def test_demo_interrupted_stops_every_process_and_namespace(tmp_path):
     if not netns_unavailable_reason():
         listing = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True, timeout=10).stdout
         assert f"{NETNS_TAG}-{proc.pid}-" not in listing
+
+
+def test_tracks_in_map_carry_other_drones_through_the_merge_estimate():
+    world_from_map = {0: np.eye(4), 1: np.array([[0.0, -1, 0, 0], [1, 0, 0, 2], [0, 0, 1, 0], [0, 0, 0, 1]])}
+    world_from_map[0][:3, 3] = [1.0, 0.0, 0.0]
+    flights = {j: np.c_[np.arange(3.0), np.arange(3.0) + j, np.full(3, 2.0 * j), np.ones(3), np.ones((3, 4))]
+               for j in range(3)}
+    shift = np.array([[1.0, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])  # an estimate 0.5 m off
+    merged = {2: {"transform": (shift @ invert(world_from_map[0]) @ world_from_map[1]).tolist()}}
+    fake = SimpleNamespace(settings=SimpleNamespace(drones=3), sim=SimpleNamespace(trajectory=flights.get),
+                           map_to_world=lambda j, s: world_from_map[j], merged_vehicles=lambda s: merged)
+    tracks, left_out = Swarm.tracks_in_map(fake, 0, [{"link": {}}, {"link": {}}, {"link": {}}])
+    assert left_out == [3] and sorted(tracks) == [1, 2]
+    assert np.allclose(tracks[1], flights[0][:, 1:3] - [1.0, 0.0])  # its own: where its map frame truly is
+    assert np.allclose(tracks[2], flights[1][:, 1:3] - [0.5, 0.0])  # through the estimate, off by its error

@@ -7,7 +7,7 @@ from PIL import Image
 from coopd.grid import OccupancyGrid
 from coopd.io import export_bt, export_ply, export_png_slice, export_png_top
 from coopd.io.bt import bt_bytes
-from coopd.io.png import COLOURS, FREE, INACCESSIBLE, LEGEND_HEIGHT, OCCUPIED, UNKNOWN, scale_for
+from coopd.io.png import COLOURS, FREE, INACCESSIBLE, OCCUPIED, UNKNOWN, scale_for
 from tests.sharing.realistic_maps import building_map
 
 
@@ -41,20 +41,23 @@ def test_ply_holds_the_occupied_cell_centres(tmp_path):
     assert got == [(-1, 0, 1, 100), (3, 3, 0, 75), (3, 3, 1, 50)]
 
 
-def pixel(image, grid, x, y):
+def pixel(image, grid, x, y, map_left_top=(0, 0)):
     s = scale_for(grid.shape[:2])
-    return image.getpixel((x * s + s // 2, (grid.shape[1] - 1 - y) * s + s // 2))
+    left, top = map_left_top
+    return image.getpixel((left + x * s + s // 2, top + (grid.shape[1] - 1 - y) * s + s // 2))
 
 
 def test_png_top_view_size_and_colours(tmp_path):
     grid = sample_grid()
-    export_png_top(grid, tmp_path / "top.png")
+    layout = export_png_top(grid, tmp_path / "top.png")
     image = Image.open(tmp_path / "top.png").convert("RGB")
     s = scale_for(grid.shape[:2])
-    assert image.size[1] == grid.shape[1] * s + LEGEND_HEIGHT and image.size[0] >= grid.shape[0] * s
+    left, top, right, bottom = layout.map_box
+    assert image.size == layout.size
+    assert (right - left, bottom - top) == (grid.shape[0] * s, grid.shape[1] * s)
     expect = {(2, 3): FREE, (5, 5): OCCUPIED, (7, 1): INACCESSIBLE, (9, 8): OCCUPIED, (0, 0): UNKNOWN}
     for (x, y), cls in expect.items():
-        assert pixel(image, grid, x, y) == tuple(COLOURS[cls]), (x, y)
+        assert pixel(image, grid, x, y, (left, top)) == tuple(COLOURS[cls]), (x, y)
 
 
 def test_png_slice_picks_the_layer(tmp_path):
