@@ -67,8 +67,9 @@ class TcpChannel:
             if select.select([self.listener], [], [], timeout)[0]:
                 self.conn, _ = self.listener.accept()
             return
-        try:
-            self.conn = socket.create_connection(self.connect_to, timeout=timeout)
+        try:  # a blocking connect: a non-blocking one (send's timeout 0) that gives up can still reach
+            # the listener's backlog and show the server a second, dead connection
+            self.conn = socket.create_connection(self.connect_to, timeout=max(timeout, 1.0))
         except OSError:
             time.sleep(timeout)
 
