@@ -18,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from coopd.daemon.config import ObstaclesConfig
+from coopd.daemon.threads import run_at_rate
 from coopd.grid import OCCUPIED_THRESHOLD
 from coopd.grid.sectors import (
     NO_DATA,
@@ -113,20 +114,10 @@ class ObstacleReporter:
     def run(self) -> None:
         """Update every 1/rate_hz s until stop(); an error on one update is logged (first three) and
         counted, and the next update comes as usual."""
-        period = 1.0 / self.config.rate_hz
-        next_at = time.monotonic()
         log.info("obstacles: OBSTACLE_DISTANCE at %.1f Hz, %.2f..%.2f m, band %.2f m below to %.2f m above",
                  self.config.rate_hz, self.config.min_distance_m, self.config.max_distance_m,
                  self.config.band_below_m, self.config.band_above_m)
-        while not self._stop.is_set():
-            try:
-                self.update()
-            except Exception:
-                self.counters["errors"] += 1
-                if self.counters["errors"] <= 3:
-                    log.exception("obstacles: update failed (%d so far)", self.counters["errors"])
-            next_at = max(next_at + period, time.monotonic())
-            self._stop.wait(max(0.0, next_at - time.monotonic()))
+        run_at_rate(self.update, self.config.rate_hz, self._stop, self.counters, "obstacles")
 
     def stop(self) -> None:
         self._stop.set()

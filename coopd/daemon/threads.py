@@ -30,6 +30,22 @@ ROLE_NICE = {
 merging low; the operator's live view lowest)."""
 
 
+def run_at_rate(step, rate_hz: float, stop: threading.Event, counters: dict, name: str) -> None:
+    """Call step() every 1/rate_hz s until stop is set (late steps do not pile up); an exception in one
+    step is counted in counters["errors"], logged for the first three, and the next step comes as usual."""
+    period = 1.0 / rate_hz
+    next_at = time.monotonic()
+    while not stop.is_set():
+        try:
+            step()
+        except Exception:
+            counters["errors"] += 1
+            if counters["errors"] <= 3:
+                log.exception("%s: update failed (%d so far)", name, counters["errors"])
+        next_at = max(next_at + period, time.monotonic())
+        stop.wait(max(0.0, next_at - time.monotonic()))
+
+
 @dataclass(frozen=True)
 class ThreadPriority:
     role: str

@@ -33,6 +33,7 @@ from collections.abc import Callable
 import numpy as np
 
 from coopd.daemon.config import ViewerConfig
+from coopd.daemon.threads import run_at_rate
 from coopd.geometry import matrix_to_quat
 from coopd.grid import OCCUPIED_THRESHOLD
 from coopd.grid.sectors import read_window
@@ -401,17 +402,7 @@ class MapViewer:
 
     def run(self) -> None:
         """Tick every 1/rate_hz s until stop(); an error on one tick is logged (first three) and counted."""
-        period = 1.0 / self.config.rate_hz
-        next_at = time.monotonic()
-        while not self._stop.is_set():
-            try:
-                self.tick()
-            except Exception:
-                self.counters["errors"] += 1
-                if self.counters["errors"] <= 3:
-                    log.exception("viewer: update failed (%d so far)", self.counters["errors"])
-            next_at = max(next_at + period, time.monotonic())
-            self._stop.wait(max(0.0, next_at - time.monotonic()))
+        run_at_rate(self.tick, self.config.rate_hz, self._stop, self.counters, "viewer")
         self.close()
 
     def stop(self) -> None:

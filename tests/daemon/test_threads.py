@@ -5,10 +5,11 @@ import os
 import sys
 import threading
 import time
+from collections import Counter
 
 import pytest
 
-from coopd.daemon.threads import ROLE_NICE, ThreadPriorities, WorkerProgress, read_nice
+from coopd.daemon.threads import ROLE_NICE, ThreadPriorities, WorkerProgress, read_nice, run_at_rate
 
 
 def run_in_thread(fn):
@@ -133,3 +134,17 @@ def test_worker_progress_tells_a_long_computation_from_a_blocked_thread():
         release.set()
         for t in threads:
             t.join(5)
+
+
+def test_run_at_rate_counts_a_failing_step_and_keeps_going():
+    stop, counters, calls = threading.Event(), Counter(), []
+
+    def step():
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("one bad update")
+        if len(calls) == 4:
+            stop.set()
+
+    run_at_rate(step, 200.0, stop, counters, "test")
+    assert len(calls) == 4 and counters["errors"] == 1
