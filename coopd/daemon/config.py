@@ -292,8 +292,10 @@ class ViewerConfig:
     """[viewer]: a live view of the map for the Foxglove app (the foxglove-sdk extra), off by default."""
 
     enabled: bool = _key("serve the live view (the viewer extra; off unless the file turns it on)", False)
-    host: str = _key("address the viewer listens on; the protocol has no authentication", "127.0.0.1",
+    host: str = _key("address the viewer listens on; another than loopback needs open = true", "127.0.0.1",
                      _ip_address)
+    open: bool = _key("serve an address other than loopback (the Foxglove protocol has no authentication: "
+                      "anyone who reaches it sees the map)", False)
     port: int = _key("WebSocket port of the viewer", 8765, _between(1, 65535))
     rate_hz: float = _key("map, pose and status updates per second", 1.0, _between(0.1, 10.0, " Hz"))
     colour: str = _key("occupied cells coloured by height or by source (own map or peers')", "height",
@@ -301,6 +303,11 @@ class ViewerConfig:
     record_dir: str = _key("record the same channels to an MCAP file per start here; empty: no recording",
                            "", _absolute_path(allow_empty=True))
     record_max_mb: int = _key("a recording stops at this size, MiB", 1024, _between(1, 1 << 20, " MiB"))
+
+    def __post_init__(self):
+        if self.enabled and not self.open and not ipaddress.ip_address(self.host).is_loopback:
+            raise ConfigError("viewer.host", f"{self.host} is not loopback and the Foxglove protocol has no "
+                              "authentication: keep it on loopback (ssh tunnel) or set viewer.open = true")
 
 
 @dataclass(frozen=True)

@@ -111,13 +111,13 @@ class ObstacleReporter:
         self.max_s = max(self.max_s, spent)
         self._times_s.append(spent)
 
-    def run(self) -> None:
+    def run(self, beat=lambda: None) -> None:
         """Update every 1/rate_hz s until stop(); an error on one update is logged (first three) and
-        counted, and the next update comes as usual."""
+        counted, and the next update comes as usual. beat() each time round (the watchdog's progress)."""
         log.info("obstacles: OBSTACLE_DISTANCE at %.1f Hz, %.2f..%.2f m, band %.2f m below to %.2f m above",
                  self.config.rate_hz, self.config.min_distance_m, self.config.max_distance_m,
                  self.config.band_below_m, self.config.band_above_m)
-        run_at_rate(self.update, self.config.rate_hz, self._stop, self.counters, "obstacles")
+        run_at_rate(self.update, self.config.rate_hz, self._stop, self.counters, "obstacles", beat)
 
     def stop(self) -> None:
         self._stop.set()
