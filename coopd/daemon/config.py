@@ -266,7 +266,9 @@ class MergingConfig:
 class ObstaclesConfig:
     """[obstacles]: the map around the vehicle sent to the FC as MAVLink OBSTACLE_DISTANCE."""
 
-    enabled: bool = _key("send OBSTACLE_DISTANCE to the FC (off unless the file turns it on)", False)
+    enabled: bool = _key("always send OBSTACLE_DISTANCE to the FC", False)
+    when_fc_asks: bool = _key("send it while the FC is set up to use it (PX4 CP_DIST > 0, ArduPilot "
+                              "PRX1_TYPE = 2), read from its parameters", True)
     rate_hz: float = _key("messages per second", 10.0, _between(1.0, 50.0, " Hz"))
     min_distance_m: float = _key(
         "nearer cells are the vehicle itself and are left out", 0.3, _between(0.05, 5.0, " m")

@@ -162,7 +162,13 @@ def link_config(config: Config) -> LinkConfig:
         odometry_rate_hz=v.odometry_rate_hz,
         link_timeout_s=max(v.link_timeout_s, v.odometry_timeout_s),
         odometry_timeout_s=v.odometry_timeout_s,
+        watch_obstacle_demand=obstacles_on(config),
     )
+
+
+def obstacles_on(config: Config) -> bool:
+    """The obstacles thread runs: it sends always, or while the FC asks for obstacle data."""
+    return config.obstacles.enabled or config.obstacles.when_fc_asks
 
 
 def camera_mount(config: Config) -> CameraMount:
@@ -280,7 +286,7 @@ class Daemon:
         self.reanchor = FrameReanchor(self.link.frames, self.mapper, camera_mount(config))
         self.latency_s: deque[float] = deque(maxlen=LATENCY_WINDOW)
         watched = (["main", "mapping", "merging"] + (["sharing"] if config.sharing.enabled else [])
-                   + (["obstacles"] if config.obstacles.enabled else []))  # the FC's obstacle feed
+                   + (["obstacles"] if obstacles_on(config) else []))  # the FC's obstacle feed
         self.progress = WorkerProgress(watched, HEALTH_MAX_AGE_S, HEALTH_BUSY_QUIET_S)
         self._stalled: dict[str, str] = {}
         self._health_lock = threading.Lock()
@@ -314,7 +320,7 @@ class Daemon:
             progress=self.progress,
             start_error=self.merge_start_error,
         )
-        self.obstacles = self._make_obstacles() if config.obstacles.enabled else None
+        self.obstacles = self._make_obstacles() if obstacles_on(config) else None
         self.viewer = None
         self.control = ControlServer(
             config.daemon.control_socket,
@@ -421,6 +427,7 @@ class Daemon:
                 global_map=self.merger.global_map,
                 pose=lambda: None if self.link.odometry_stale() else self.link.poses.latest(),
                 send=self.link.send_obstacle_distance,
+                fc_demand=self.link.obstacle_demand.demand,
             )
         except ValueError as e:
             raise StartupError(str(e)) from e

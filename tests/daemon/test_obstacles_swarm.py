@@ -158,7 +158,9 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
     daemons: list[Daemon] = []
     runners = []
     try:
-        obstacles = [{}, {"enabled": True, "rate_hz": 10.0, "max_distance_m": 3.0}]
+        # the default [obstacles] (when_fc_asks): drone 2's FC has collision prevention on, drone 1's not
+        obstacles = [{}, {"rate_hz": 10.0, "max_distance_m": 3.0}]
+        sim.vehicle(1).fc.params["CP_DIST"] = 1.0
         for i in range(2):
             daemons.append(Daemon(daemon_config(wd, i, mav_port, share_ports, sim.vehicle(i).camera_path,
                                                 obstacles[i])))
@@ -202,10 +204,9 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
         # drone 2 never saw room B: nothing of its own map is near the far wall
         own_near_wall = own_cells_near(daemons[1], sim, FAR_WALL_X - 3.0)
         assert own_near_wall == 0, own_near_wall  # nothing of room B but its floor (seen from afar)
-        # drone 2: collision prevention on, then 1 m/s toward the far wall through the door, flying
-        # backwards (facing west), so its camera never sees room B: only drone 1's map shows the wall
-        with sim.lock:
-            dasher.fc.params["CP_DIST"] = 1.0
+        # drone 2: 1 m/s toward the far wall through the door, flying backwards (facing west), so its
+        # camera never sees room B: only drone 1's map shows the wall
+        assert not daemons[0].handle_status({})["obstacles"]["sending"]  # its FC does not use them
         dasher.goto(1.0, 4.0, 180.0)
         backwards = dasher.velocity([1.0, 0.0, 0.0], 180.0)
         with sim.lock:
@@ -228,6 +229,7 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
         assert closest - HALF_SPAN >= 0.5, report
         assert sim.vehicle(1).contact_count == 0, report
         assert status["nearest_m"] is not None and status["nearest_m"] <= 1.6, report
+        assert status["sending"] and not status["enabled"] and status["fc"] == "CP_DIST = 1 m", report
         # its camera looked back the whole way: it saw room B's floor, never the far wall
         assert own_cells_near(daemons[1], sim, FAR_WALL_X - 1.0) == 0, report
         # collision prevention off: the same command flies it into the wall, and the contact is recorded
