@@ -22,6 +22,7 @@ from coopd.camera.socket_source import DEFAULT_CAMERA_SOCKET
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
 from coopd.sharing.discovery import parse_targets
+from coopd.sharing.zenoh_link import ZenohSettings
 from coopd.vehicle.connection import parse_connection
 
 DEFAULT_CONFIG_PATH = Path("/etc/coopd/coopd.toml")
@@ -232,6 +233,9 @@ class SharingConfig:
     allowed_vehicles: tuple[int, ...] = _key(
         "vehicle ids whose maps are accepted; empty: any id 1..255", (), _each(_between(1, 255))
     )
+    transport: str = _key("'mtp' (the thesis protocol over TCP), 'zenoh' ([sharing.zenoh], the zenoh extra) "
+                          "or 'both'", "mtp", _one_of("mtp", "zenoh", "both"))
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
 
     def __post_init__(self):
         if not self.peer_ports:

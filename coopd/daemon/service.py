@@ -240,6 +240,8 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
         allowed_vehicles=frozenset(s.allowed_vehicles),
         max_epoch_ahead_s=s.max_clock_skew_s,
         transport=transport,
+        mtp=s.transport in ("mtp", "both"),
+        zenoh=s.zenoh if s.transport in ("zenoh", "both") else None,
     )
 
 

@@ -23,6 +23,7 @@ from coopd.net import host_port
 from . import discovery, mtp, versions
 from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
+from .zenoh_link import ZenohLink, ZenohSettings
 
 log = logging.getLogger("coopd.sharing")
 
@@ -62,6 +63,10 @@ class SharingConfig:
     """A received version whose epoch (or a merge result whose µs version) is further in the future
     than this is refused (clock skew allowed between vehicles)."""
     transport: TransportSettings = field(default_factory=TransportSettings)
+    mtp: bool = True
+    """Serve and scan over MTP (TCP)."""
+    zenoh: ZenohSettings | None = None
+    """Also (or, without mtp, only) publish and receive over Zenoh (zenoh_link); None: not."""
 
 
 def _notify(callback: Callable[[int, int], None] | None, name: str, summary: MessageSummary) -> None:
@@ -131,6 +136,9 @@ class SharingService:
         self._targets = discovery.parse_targets(config.peers, config.peer_ports)
         self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
                                  config.listen_host, config.port, self._wants, ledger=budget)
+        self.zenoh = None if config.zenoh is None else ZenohLink(
+            config.zenoh, config.vehicle_id, config.transport.swarm_key, inspect, self._accept,
+            self.peers.failure, config.transport.max_bytes, ledger=budget)
         self._own: tuple[int, bytes] | None = None
         self._own_result: tuple[int, bytes] | None = None
         self._update = threading.Condition()
@@ -149,13 +157,18 @@ class SharingService:
 
     # ------------------------------------------------------------------ lifecycle
     @property
-    def address(self) -> tuple[str, int]:
-        return self._server.address
+    def address(self) -> tuple[str, int] | None:
+        """Where the MTP server listens (None without MTP)."""
+        return self._server.address if self.config.mtp else None
 
     def start(self) -> "SharingService":
-        self._server.start()
-        self._scanner = threading.Thread(target=self._scan_loop, name="coopd-share-discovery", daemon=True)
-        self._scanner.start()
+        if self.config.mtp:
+            self._server.start()
+            self._scanner = threading.Thread(target=self._scan_loop, name="coopd-share-discovery",
+                                             daemon=True)
+            self._scanner.start()
+        if self.zenoh is not None:
+            self.zenoh.start()
         return self
 
     def stop(self) -> None:
@@ -171,6 +184,8 @@ class SharingService:
         for s in senders:
             s.thread.join(5)
         self._server.stop()
+        if self.zenoh is not None:
+            self.zenoh.stop()
 
     # ------------------------------------------------------------------ publishing
     def publish(self, message: bytes, version: int) -> None:
@@ -182,6 +197,8 @@ class SharingService:
                 raise ValueError(f"version {version} is older than the published {self._own[0]}")
             self._own = (version, bytes(message))
             self._update.notify_all()
+        if self.zenoh is not None:
+            self.zenoh.publish("map", self._own[1])
 
     def publish_result(self, message: bytes, version: int) -> None:
         """Offer our latest merge-result message (wire type 2); peers get it if `version` is newer."""
@@ -193,6 +210,8 @@ class SharingService:
                                  f"{self._own_result[0]}")
             self._own_result = (version, bytes(message))
             self._update.notify_all()
+        if self.zenoh is not None:
+            self.zenoh.publish("merge", self._own_result[1])
 
     def pending_for(self, peer_vid: int) -> list[tuple[int, int, bytes, str]]:
         """(origin, version, message, kind) this peer lacks: our map and merge result, and with relay,
@@ -448,7 +467,8 @@ class SharingService:
         own = self._own
         snap = self.peers.snapshot()
         snap.update({
-            "vehicle_id": self.vehicle_id, "listen": host_port(*self.address),
+            "vehicle_id": self.vehicle_id,
+            "listen": None if self.address is None else host_port(*self.address),
             "published_version": None if own is None else own[0],
             "published_result_version": None if self._own_result is None else self._own_result[0],
             "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
@@ -461,7 +481,10 @@ class SharingService:
             "connections_accepted": self._server.accepted,
             "refused_busy": self._server.refused_busy, "evicted_idle": self._server.evicted_idle,
             "scans": self.scans,
+            "transports": ["mtp"] * self.config.mtp + ["zenoh"] * (self.zenoh is not None),
         })
+        if self.zenoh is not None:
+            snap["zenoh"] = self.zenoh.stats()
         return snap
 
 

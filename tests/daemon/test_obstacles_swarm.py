@@ -12,13 +12,12 @@ socket on loopback."""
 from __future__ import annotations
 
 import math
-import shutil
 import threading
 import time
 
 import numpy as np
 import pytest
-from daemon_harness import in_process_memory_mb, wait_until, workdir
+from daemon_harness import in_process_memory_mb, run_in_threads, stop_all, wait_until, workdir
 
 from coopd.daemon.config import from_dict
 from coopd.daemon.service import Daemon
@@ -164,10 +163,7 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
         for i in range(2):
             daemons.append(Daemon(daemon_config(wd, i, mav_port, share_ports, sim.vehicle(i).camera_path,
                                                 obstacles[i])))
-        for d in daemons:
-            d.start()
-            runners.append(threading.Thread(target=d.run, daemon=True))
-            runners[-1].start()
+        runners = run_in_threads(daemons)
         sim.start()
         mapper, dasher = Pilot(sim, 0), Pilot(sim, 1)
         # drone 2 looks around room A from where it took off (so it has a map to register drone 1's
@@ -244,9 +240,4 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
         assert contacts and contacts[0].geom == "wall_far", contacts
         print({**report, "contact_without_cp": contacts[0]})
     finally:
-        sim.stop()
-        for d, r in zip(daemons, runners, strict=False):
-            d.request_stop("test")
-            r.join(5)
-            d.shutdown()
-        shutil.rmtree(wd, ignore_errors=True)
+        stop_all(sim, daemons, runners, wd)
