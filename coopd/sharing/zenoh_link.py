@@ -180,8 +180,9 @@ class ZenohLink:
         self.max_message_bytes = max_message_bytes + HEAD.size + NONCE_SIZE + TAG_SIZE
         self._cipher = None if swarm_key is None else envelope_cipher(swarm_key)
         self._accept, self._failure, self._ledger = accept, failure, ledger
-        self._latest: dict[str, bytes] = {}  # kind -> our sealed envelope
-        self._latest_lock = threading.Lock()
+        self._latest: dict[str, bytes] = {}  # kind -> our newest sealed envelope (served to queries)
+        self._unsent: dict[str, bytes] = {}  # kind -> newest envelope the send thread has not put yet
+        self._new = threading.Condition()
         self._inbox: queue.Queue = queue.Queue(QUEUE_MESSAGES)
         self._fetch: queue.Queue = queue.Queue(256)
         self._stop = threading.Event()
@@ -212,7 +213,8 @@ class ZenohLink:
             self.session.liveliness().declare_token(f"{base}/{self.vehicle_id}/alive"),
             self.session.liveliness().declare_subscriber(f"{base}/*/alive", self._on_alive, history=True),
         ]
-        for target, name in ((self._receive_loop, "coopd-zenoh-rx"), (self._fetch_loop, "coopd-zenoh-fetch")):
+        for target, name in ((self._receive_loop, "coopd-zenoh-rx"), (self._fetch_loop, "coopd-zenoh-fetch"),
+                             (self._send_loop, "coopd-zenoh-tx")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
@@ -224,6 +226,8 @@ class ZenohLink:
 
     def stop(self) -> None:
         self._stop.set()
+        with self._new:
+            self._new.notify_all()
         for q in (self._inbox, self._fetch):
             try:
                 q.put_nowait(None)
@@ -237,20 +241,42 @@ class ZenohLink:
 
     # ------------------------------------------------------------------ publishing
     def publish(self, kind: str, message: bytes) -> None:
-        """Publish our newest message of a kind ('map' or 'merge') and keep it for queries."""
+        """Offer our newest message of a kind ('map' or 'merge'): kept for queries at once, put on the
+        network by the send thread (a newer one replaces one not yet sent)."""
         key = key_expr(self.settings.swarm, self.vehicle_id, kind)
         envelope = seal(self._cipher, key, message)
-        with self._latest_lock:
+        with self._new:
             self._latest[kind] = envelope
-        if self.session is not None:
-            self.session.put(key, envelope)
-            self.counters["published"] += 1
-            self.counters["bytes_out"] += len(envelope)
+            self._unsent[kind] = envelope
+            self._new.notify_all()
+
+    def _send_loop(self) -> None:
+        """Put each newest message reliably (congestion control BLOCK: on a slow link it waits for room
+        instead of dropping the update), on this thread, so no other thread waits for the network."""
+        import zenoh
+
+        while not self._stop.is_set():
+            with self._new:
+                while not self._unsent and not self._stop.is_set():
+                    self._new.wait()
+                unsent, self._unsent = self._unsent, {}
+            for kind, envelope in unsent.items():
+                if self._stop.is_set() or self.session is None:
+                    return
+                try:
+                    self.session.put(key_expr(self.settings.swarm, self.vehicle_id, kind), envelope,
+                                     congestion_control=zenoh.CongestionControl.BLOCK)
+                except Exception as e:  # the session closing under us
+                    self.counters["publish_failed"] += 1
+                    log.debug("zenoh: publishing our %s failed: %s", kind, e)
+                    continue
+                self.counters["published"] += 1
+                self.counters["bytes_out"] += len(envelope)
 
     def _on_query(self, query) -> None:
         """Answer a query for our latest map / merge (Zenoh's thread: no work beyond the reply)."""
         base = f"coopd/{self.settings.swarm}/{self.vehicle_id}/"
-        with self._latest_lock:
+        with self._new:
             latest = dict(self._latest)
         for kind, envelope in latest.items():
             try:
