@@ -31,17 +31,13 @@ from coopd.grid.cells import CELL_DTYPE, UNKNOWN
 from . import delta_kernels as k
 from . import wire
 from .wire import DecodeLimits, MapMeta, WireError
+from .wire_options import BRICK_EDGES, DEFAULT_BRICK_EDGE, MSG_MAP_DELTA
 
-MSG_MAP_DELTA = 4
 DELTA_FORMAT_VERSION = 1
 DELTA_HEADER = struct.Struct("<bBHiBBBB3i3iddQQIIIII")
 """type, format version, header length, vehicle id, map type, map encoding, brick encoding, brick
 edge, m_x m_y m_z, offset (key of array cell 0, 0, 0), resolution, stamp, base version, map version,
 brick count, CRC-32 of the new map's cells, index frame size, payload size, CRC-32 of the payload."""
-BRICK_EDGES = (4, 8, 16, 32, 64)
-DEFAULT_BRICK_EDGE = 16
-"""Cells per brick edge: 16³ = 4096 cells (1.6 m at 10 cm) measured smallest deltas on exploration
-flights (scripts/bench share --delta)."""
 FULL_SHARE = 0.5
 """A delta larger than this share of the full map message is not sent: the full map is."""
 MAX_BASES = 256
@@ -266,10 +262,10 @@ class BrickLedger:
         return None if latest is None else latest[0]
 
     @property
-    def held_cells(self) -> int:
-        """Cells of the latest map this ledger keeps (the memory it holds, besides 16 bytes per brick)."""
+    def held_bytes(self) -> int:
+        """Memory this ledger holds: the latest map's cells and 16 bytes per brick of the union lattice."""
         latest = self._latest
-        return 0 if latest is None else latest[1].size
+        return (0 if latest is None else latest[1].size) + 16 * self._hashes.size
 
     def record(self, grid: OccupancyGrid, version: int, message: bytes) -> int:
         """Note the map published as `version` (its full message `message`, which must carry `grid`);
