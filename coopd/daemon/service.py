@@ -338,7 +338,7 @@ class Daemon:
         self._local_message: tuple[int, bytes] | None = None
         self._local_grid: OccupancyGrid | None = None
         """The snapshot _local_message encodes (kept for the sharing delta ledger, never changed)."""
-        self._message_lock = threading.RLock()
+        self._message_lock = threading.Lock()
         self._published_version = 0
         self._saved_versions: dict[str, int] = {"local": self.mapper.version}  # a resumed map is on disk
         self._snapshot_cells = 0
@@ -667,9 +667,7 @@ class Daemon:
                     self._publish_local()
 
     def _publish_local(self) -> None:
-        with self._message_lock:
-            v, message = self.local_message()
-            grid = self._local_grid  # the grid of that message, for the delta ledger
+        v, message, grid = self._local_map()  # the grid too: the sharing delta ledger hashes it
         self.versions.ensure(v)
         wire_version = map_versions.compose(self.epoch, v)
         try:
@@ -752,15 +750,19 @@ class Daemon:
 
     def local_message(self) -> tuple[int, bytes]:
         """(version, encoded local map), encoded again only when the map changed."""
+        version, message, _ = self._local_map()
+        return version, message
+
+    def _local_map(self) -> tuple[int, bytes, OccupancyGrid]:
+        """(version, encoded local map, the snapshot it encodes), made again only when the map changed."""
         with self._message_lock:
             cached = self._local_message
-            if cached is not None and cached[0] == self.mapper.version:
-                return cached
-            grid, version = self.known_snapshot()
-            message = encode_map(grid, MapMeta(self.vehicle_id, version, time.time()))
-            self._local_message = (version, message)
-            self._local_grid = grid
-            return self._local_message
+            if cached is None or cached[0] != self.mapper.version:
+                grid, version = self.known_snapshot()
+                message = encode_map(grid, MapMeta(self.vehicle_id, version, time.time()))
+                self._local_message = (version, message)
+                self._local_grid = grid
+            return (*self._local_message, self._local_grid)
 
     # -------------------------------------------------------------------- persistence, memory
     def checkpoint(self) -> None:
