@@ -172,8 +172,9 @@ def peek_delta(data) -> DeltaInfo:
     if version <= base:
         raise WireError(f"delta from version {base} to {version} does not go forward")
     _, lat_n = lattice_of(np.array((ox, oy, oz), dtype=np.int64), shape, edge)
-    if count > int(np.prod(lat_n)):
-        raise WireError(f"{count} bricks, but the map's lattice holds {int(np.prod(lat_n))}")
+    lattice = math.prod(int(v) for v in lat_n)  # Python ints: a hostile box cannot overflow it
+    if count > lattice:
+        raise WireError(f"{count} bricks, but the map's lattice holds {lattice}")
     if index_size > payload_size:
         raise WireError(f"brick index of {index_size} bytes is larger than the payload ({payload_size})")
     return DeltaInfo(vid, shape, (ox, oy, oz), res, stamp, base, version, wire.ENCODING_NAMES[map_enc],

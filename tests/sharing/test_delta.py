@@ -224,6 +224,7 @@ def hostile_cases(target):
         "newer format": (forged(target, [1], brick, fmt=2), wire.MessageVersionError),
         "short header length": (forged(target, [1], brick, hlen=40), WireError),
         "huge map": (forged(target, [1], brick, shape=(100000, 100000, 100)), WireError),
+        "largest box": (forged(target, [1], brick, shape=(2**31 - 1,) * 3, count=2**32 - 1), WireError),
         "other resolution": (forged(target, [1], brick, res=0.2), DeltaBaseError),
         "nan stamp": (forged(target, [1], brick, stamp=float("nan")), WireError),
     }
