@@ -108,6 +108,9 @@ class ArduCopterParams:
             "FRAME_CLASS": (1.0, mav.MAV_PARAM_TYPE_INT8),
             "FRAME_TYPE": (1.0, mav.MAV_PARAM_TYPE_INT8),
             "DISARM_DELAY": (10.0, mav.MAV_PARAM_TYPE_INT8),
+            # proximity sensor 1's type (2: MAVLink, what a companion reads to know its OBSTACLE_DISTANCE
+            # is used); reported and settable, but this personality does not avoid obstacles
+            "PRX1_TYPE": (0.0, mav.MAV_PARAM_TYPE_INT8),
         }
         self._apply_disarm_delay()
         for n in range(N_INSTANCES):
@@ -341,7 +344,8 @@ class ArduCopterLink(MavlinkLink):
             self.stats["param_unknown"] += 1
 
     def _on_param_set(self, m) -> None:
-        """Set and echo a parameter; an SRn_ stream rate takes effect on instance n at once."""
+        """Set a parameter and send its value on every instance; an SRn_ stream rate takes effect on
+        instance n at once."""
         name, names = _param_name(m.param_id), self.params.names
         if name not in names:
             self.stats["param_unknown"] += 1
@@ -350,7 +354,8 @@ class ArduCopterLink(MavlinkLink):
             self._apply_stream_param(name)
         else:
             self.stats["param_rejected"] += 1
-        self._send_param(name, names.index(name), len(names))
+        for link in self.v.links:  # ArduPilot sends the new value on every channel
+            link._send_param(name, names.index(name), len(names))
 
     def _apply_stream_param(self, name: str) -> None:
         """SRn_GROUP = hz: instance n's group follows."""

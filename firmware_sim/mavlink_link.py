@@ -507,7 +507,8 @@ class MavlinkLink:
             self.stats["param_unknown"] += 1
 
     def _on_param_set(self, m) -> None:
-        """Set a known parameter (NaN refused) and echo its value; unknown ones are ignored."""
+        """Set a known parameter (NaN refused) and send its value on every instance; unknown ones are
+        ignored."""
         params = self.v.fc.params
         name = _param_name(m.param_id)
         if name not in params:
@@ -523,7 +524,8 @@ class MavlinkLink:
         if name != "MAV_SYS_ID":
             params[name] = value
         names = sorted(params)
-        self._send_param(name, names.index(name), len(names))
+        for link in self.v.links:  # PX4 sends a changed parameter on every MAVLink instance
+            link._send_param(name, names.index(name), len(names))
 
     def _send_param(self, name: str, index: int, count: int) -> None:
         """Send PARAM_VALUE; integers use PX4's bytewise encoding."""

@@ -15,6 +15,7 @@ namespace and file it made.
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import os
 import shutil
@@ -72,6 +73,9 @@ class SwarmSettings:
     """Per-drone key overrides {drone index: key bytes}, e.g. one drone with the wrong swarm key."""
     config: dict = field(default_factory=dict)
     """Extra coopd.toml settings: {section: {key: value}}, e.g. {"merging": {"distributed": False}}."""
+    viewer_port: int = 0
+    """> 0: every daemon serves the live view (Foxglove WebSocket) on its swarm address at this port;
+    an address other than loopback (netns mode) with viewer.open, as the protocol has no authentication."""
     noise: str = "default"
     autopilot: str = "px4"
     """The flight controllers' MAVLink personality: 'px4' or 'ardupilot' (ArduCopter)."""
@@ -181,6 +185,10 @@ class Swarm:
         """Drone i's address on the swarm network."""
         return self.lab.address(i + 1)
 
+    def viewer_url(self, i: int) -> str | None:
+        """Where the Foxglove app reaches drone i's live view (settings.viewer_port), or None."""
+        return f"ws://{self.address(i)}:{self.settings.viewer_port}" if self.settings.viewer_port else None
+
     def mavlink_address(self, i: int) -> str:
         """Where drone i's coopd receives MAVLink: its end of the FC cable (netns), else its address."""
         if self.network_mode == "netns":
@@ -238,6 +246,9 @@ class Swarm:
             "daemon": {"memory_mb": s.memory_mb, "state_dir": str(d.state_dir),
                        "control_socket": str(d.socket), "checkpoint_period_s": s.checkpoint_period_s},
         }
+        if s.viewer_port:
+            sections["viewer"] = {"enabled": True, "host": self.address(i), "port": s.viewer_port,
+                                  "open": not ipaddress.ip_address(self.address(i)).is_loopback}
         if self.key_file(i) is not None:
             sections["sharing"]["swarm_key_file"] = str(self.key_file(i))
         else:

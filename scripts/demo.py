@@ -47,6 +47,9 @@ def parse_args():
     p.add_argument("--record", action="store_true",
                    help="every daemon records its flight to OUT/recordings/coopd-vehicle<ID>-<time>.mcap "
                         "(pose, track, map updates, peers' frames, status; opens in the Foxglove app)")
+    p.add_argument("--viewer", nargs="?", type=int, const=8765, default=0, metavar="PORT",
+                   help="every daemon serves its live view (Foxglove WebSocket, default port 8765) on its "
+                        "swarm address; the URLs are printed at start (open them in the Foxglove app)")
     a = p.parse_args()
     if not 1 <= a.drones <= 10:
         p.error("--drones must be within 1..10")
@@ -66,8 +69,8 @@ def obstacles_line(status: dict, fc_received: int | None) -> str:
     """The report's OBSTACLE_DISTANCE line of one drone: what its daemon had sent at its last status,
     what its FC has received by the time of the report."""
     ob = status.get("obstacles") or {}
-    if not ob.get("enabled"):
-        return "obstacles: not enabled"
+    if not ob.get("sending") and not ob.get("sent"):
+        return f"obstacles: not sent (FC: {ob.get('fc', '-')})"
     nearest = ob.get("nearest_m")
     return (f"obstacles: {ob.get('sent', 0)} OBSTACLE_DISTANCE sent at {ob.get('rate_hz')} Hz "
             f"({ob.get('with_global', 0)} with the global map, {ob.get('no_pose', 0)} without a pose), "
@@ -97,7 +100,7 @@ def main() -> int:
     swarm = Swarm(SwarmSettings(world=args.world, drones=args.drones, seed=args.seed, speed=args.speed,
                                 network=args.network, mavlink_base=args.port_base,
                                 sharing_port=args.port_base + 2660, autopilot=args.autopilot,
-                                config=demo_config(args, recordings)))
+                                viewer_port=args.viewer, config=demo_config(args, recordings)))
     interrupted = False
 
     def on_signal(*_):
@@ -112,6 +115,9 @@ def main() -> int:
         swarm.start()
         print(f"demo: {n} coopd daemons mapping, network: {swarm.network_mode} "
               f"({', '.join(swarm.address(i) for i in range(n))}); files in {swarm.workdir}")
+        if args.viewer:
+            print("demo: live views (Foxglove app: Open connection, Foxglove WebSocket): "
+                  + ", ".join(f"drone {i + 1} {swarm.viewer_url(i)}" for i in range(n)))
         swarm.fly()
         print("demo: drones take off and fly their exploration routes")
         last_print = 0.0

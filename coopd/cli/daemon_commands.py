@@ -178,10 +178,13 @@ def format_status(s: dict) -> str:
         rows.append(("merging", f"{mg.get('state', '-')}" if not mg.get("available", True)
                      else f"{mg.get('state', '-')}; {mg['start_error']}"))
     ob = s.get("obstacles") or {}
-    if ob.get("enabled"):
+    if ob and not ob.get("sending"):
+        rows.append(("obstacles", f"not sending; FC: {ob.get('fc', '-')}"))
+    elif ob:
         nearest = ob.get("nearest_m")
+        why = "always" if ob.get("enabled") else f"FC asks: {ob.get('fc', '-')}"
         rows.append(("obstacles", f"{ob.get('sent', '-')} OBSTACLE_DISTANCE sent at "
-                     f"{ob.get('rate_hz', '-')} Hz; "
+                     f"{ob.get('rate_hz', '-')} Hz ({why}); "
                      f"last: nearest {'-' if nearest is None else f'{nearest} m'}, "
                      f"{ob.get('sectors_no_data', '-')} sectors no data, {ob.get('sectors_free', '-')} free; "
                      f"{ob.get('no_pose', '-')} without a pose"))

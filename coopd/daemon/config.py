@@ -22,6 +22,7 @@ from coopd.camera.socket_source import DEFAULT_CAMERA_SOCKET
 from coopd.daemon.control import DEFAULT_CONTROL_SOCKET, MAX_SOCKET_PATH
 from coopd.mapping import MapperConfig
 from coopd.sharing.discovery import parse_targets
+from coopd.sharing.zenoh_link import ZenohSettings
 from coopd.vehicle.connection import parse_connection
 
 DEFAULT_CONFIG_PATH = Path("/etc/coopd/coopd.toml")
@@ -235,6 +236,9 @@ class SharingConfig:
     allowed_vehicles: tuple[int, ...] = _key(
         "vehicle ids whose maps are accepted; empty: any id 1..255", (), _each(_between(1, 255))
     )
+    transport: str = _key("'mtp' (the thesis protocol over TCP), 'zenoh' ([sharing.zenoh], the zenoh extra) "
+                          "or 'both'", "mtp", _one_of("mtp", "zenoh", "both"))
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
 
     def __post_init__(self):
         if not self.peer_ports:
@@ -269,7 +273,9 @@ class MergingConfig:
 class ObstaclesConfig:
     """[obstacles]: the map around the vehicle sent to the FC as MAVLink OBSTACLE_DISTANCE."""
 
-    enabled: bool = _key("send OBSTACLE_DISTANCE to the FC (off unless the file turns it on)", False)
+    enabled: bool = _key("always send OBSTACLE_DISTANCE to the FC", False)
+    when_fc_asks: bool = _key("send it while the FC is set up to use it (PX4 CP_DIST > 0, ArduPilot "
+                              "PRX1_TYPE = 2), read from its parameters", True)
     rate_hz: float = _key("messages per second", 10.0, _between(1.0, 50.0, " Hz"))
     min_distance_m: float = _key(
         "nearer cells are the vehicle itself and are left out", 0.3, _between(0.05, 5.0, " m")
@@ -295,8 +301,10 @@ class ViewerConfig:
     """[viewer]: a live view of the map for the Foxglove app (the foxglove-sdk extra), off by default."""
 
     enabled: bool = _key("serve the live view (the viewer extra; off unless the file turns it on)", False)
-    host: str = _key("address the viewer listens on; the protocol has no authentication", "127.0.0.1",
+    host: str = _key("address the viewer listens on; another than loopback needs open = true", "127.0.0.1",
                      _ip_address)
+    open: bool = _key("serve an address other than loopback (the Foxglove protocol has no authentication: "
+                      "anyone who reaches it sees the map)", False)
     port: int = _key("WebSocket port of the viewer", 8765, _between(1, 65535))
     rate_hz: float = _key("map, pose and status updates per second", 1.0, _between(0.1, 10.0, " Hz"))
     colour: str = _key("occupied cells coloured by height or by source (own map or peers')", "height",
@@ -304,6 +312,11 @@ class ViewerConfig:
     record_dir: str = _key("record the same channels to an MCAP file per start here; empty: no recording",
                            "", _absolute_path(allow_empty=True))
     record_max_mb: int = _key("a recording stops at this size, MiB", 1024, _between(1, 1 << 20, " MiB"))
+
+    def __post_init__(self):
+        if self.enabled and not self.open and not ipaddress.ip_address(self.host).is_loopback:
+            raise ConfigError("viewer.host", f"{self.host} is not loopback and the Foxglove protocol has no "
+                              "authentication: keep it on loopback (ssh tunnel) or set viewer.open = true")
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,8 @@ local map under the mapping lock, overlays them (the local map is fresher: where
 wins), and hands the 72 sector distances of coopd.grid.sectors to the MAVLink thread, which sends
 them. Only the window is copied (at most WINDOW_MAX_CELLS, checked at start), never a whole map.
 Without a fresh pose (odometry stale, link down) every sector is sent as "no data", never "free".
+It sends always ([obstacles] enabled) or while the FC says it uses obstacle data (when_fc_asks: its
+CP_DIST or PRX1_TYPE, coopd.vehicle.fc_params), and computes nothing while it does not send.
 """
 
 import logging
@@ -58,10 +60,12 @@ class ObstacleReporter:
 
     local_map() -> (grid, lock) of the live local map; global_map() -> the merger's (grid, meta) or
     None (installed global maps are never changed, a merge installs a new one); pose() -> the newest
-    PoseSample, or None when odometry is stale; send(distances_cm, min_cm, max_cm, t_fc_s)."""
+    PoseSample, or None when odometry is stale; send(distances_cm, min_cm, max_cm, t_fc_s);
+    fc_demand() -> (does the FC use obstacle data: True, False or None not known, why)."""
 
     def __init__(self, config: ObstaclesConfig, resolution: float, local_map: Callable, global_map: Callable,
-                 pose: Callable, send: Callable, threshold: int = OCCUPIED_THRESHOLD):
+                 pose: Callable, send: Callable, fc_demand: Callable = lambda: (None, "not asked"),
+                 threshold: int = OCCUPIED_THRESHOLD):
         cells = largest_window(config, resolution)
         if cells > WINDOW_MAX_CELLS:
             raise ValueError(f"obstacles: max_distance_m {config.max_distance_m} m and the band at "
@@ -71,6 +75,10 @@ class ObstacleReporter:
         self.resolution = resolution
         self.threshold = threshold
         self.local_map, self.global_map, self.pose, self.send = local_map, global_map, pose, send
+        self.fc_demand = fc_demand
+        self.sending: bool | None = None
+        """Whether the last update sent (None before the first); changes are logged."""
+        self.fc_says = "not asked"
         self.min_cm = int(round(config.min_distance_m * 100))
         self.max_cm = int(math.floor(config.max_distance_m * 100 + 1e-6))
         self.counters = {"sent": 0, "no_pose": 0, "with_global": 0, "errors": 0}
@@ -100,6 +108,29 @@ class ObstacleReporter:
                                         c.min_distance_m, c.max_distance_m, self.threshold)
         return distances, sample.t_fc
 
+    def should_send(self) -> bool:
+        """Always with enabled; with when_fc_asks while the FC says it uses obstacle data. A change
+        is one log line (waiting for the FC's answer is not one)."""
+        asks, self.fc_says = self.fc_demand()
+        sending = self.config.enabled or (self.config.when_fc_asks and asks is True)
+        if sending == self.sending or (not sending and self.sending is None and asks is None):
+            return sending
+        self.sending = sending
+        c = self.config
+        if sending:
+            why = "[obstacles] enabled" if c.enabled else f"the FC uses them: {self.fc_says}"
+            log.info("obstacles: sending OBSTACLE_DISTANCE at %.1f Hz, %.2f..%.2f m, band %.2f m below to "
+                     "%.2f m above (%s)", c.rate_hz, c.min_distance_m, c.max_distance_m, c.band_below_m,
+                     c.band_above_m, why)
+        else:
+            log.info("obstacles: not sending OBSTACLE_DISTANCE: %s", self.fc_says)
+        return sending
+
+    def step(self) -> None:
+        """One tick of the thread: an update when sending, else nothing."""
+        if self.should_send():
+            self.update()
+
     def update(self) -> None:
         """Compute once and hand the message to the MAVLink thread."""
         t0 = time.perf_counter()
@@ -111,13 +142,10 @@ class ObstacleReporter:
         self.max_s = max(self.max_s, spent)
         self._times_s.append(spent)
 
-    def run(self) -> None:
-        """Update every 1/rate_hz s until stop(); an error on one update is logged (first three) and
-        counted, and the next update comes as usual."""
-        log.info("obstacles: OBSTACLE_DISTANCE at %.1f Hz, %.2f..%.2f m, band %.2f m below to %.2f m above",
-                 self.config.rate_hz, self.config.min_distance_m, self.config.max_distance_m,
-                 self.config.band_below_m, self.config.band_above_m)
-        run_at_rate(self.update, self.config.rate_hz, self._stop, self.counters, "obstacles")
+    def run(self, beat=lambda: None) -> None:
+        """Step every 1/rate_hz s until stop(); an error on one update is logged (first three) and
+        counted, and the next update comes as usual. beat() each time round (the watchdog's progress)."""
+        run_at_rate(self.step, self.config.rate_hz, self._stop, self.counters, "obstacles", beat)
 
     def stop(self) -> None:
         self._stop.set()
@@ -126,7 +154,10 @@ class ObstacleReporter:
         last = self.last
         times = list(self._times_s)
         return {
-            "enabled": True,
+            "enabled": self.config.enabled,
+            "when_fc_asks": self.config.when_fc_asks,
+            "sending": bool(self.sending),
+            "fc": self.fc_says,
             "rate_hz": self.config.rate_hz,
             **self.counters,
             "update_ms": None if not times else {"mean": round(1e3 * sum(times) / len(times), 3),

@@ -13,7 +13,7 @@
 | coopd-viewer    | viewer +15  | MapViewer.run: map, poses, status -> Foxglove app ([viewer]) |
 | coopd-control   | control 0   | ControlServer: coopctl                                       |
 | main            | -           | run(): checkpoints, memory ledger, sd_notify STATUS, health  |
-| coopd-watchdog  | -           | WATCHDOG=1 while main, mapping, merging and sharing progress |
+| coopd-watchdog  | -           | WATCHDOG=1 while main, mapping, merging, sharing, obstacles progress |
 """
 
 import json
@@ -84,7 +84,7 @@ PUBLISH_PERIOD_S = 1.0
 NEW_EPOCH_MIN_S = 5.0
 """A peer refusing our map's version starts a new version epoch at most this often."""
 HEALTH_MAX_AGE_S = 3.0
-"""Every watched thread (main, mapping, merging, sharing) must have looped within this time for
+"""Every watched thread (main, mapping, merging, sharing, obstacles) must have looped within this time for
 WATCHDOG=1, or be inside a long step (a merge, a publish) that used CPU within HEALTH_BUSY_QUIET_S."""
 HEALTH_BUSY_QUIET_S = 30.0
 LATENCY_WINDOW = 2000
@@ -162,7 +162,13 @@ def link_config(config: Config) -> LinkConfig:
         odometry_rate_hz=v.odometry_rate_hz,
         link_timeout_s=max(v.link_timeout_s, v.odometry_timeout_s),
         odometry_timeout_s=v.odometry_timeout_s,
+        watch_obstacle_demand=obstacles_on(config),
     )
+
+
+def obstacles_on(config: Config) -> bool:
+    """The obstacles thread runs: it sends always, or while the FC asks for obstacle data."""
+    return config.obstacles.enabled or config.obstacles.when_fc_asks
 
 
 def camera_mount(config: Config) -> CameraMount:
@@ -235,6 +241,8 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
         allowed_vehicles=frozenset(s.allowed_vehicles),
         max_epoch_ahead_s=s.max_clock_skew_s,
         transport=transport,
+        mtp=s.transport in ("mtp", "both"),
+        zenoh=s.zenoh if s.transport in ("zenoh", "both") else None,
     )
 
 
@@ -280,7 +288,8 @@ class Daemon:
         self.mapper = self._make_mapper()
         self.reanchor = FrameReanchor(self.link.frames, self.mapper, camera_mount(config))
         self.latency_s: deque[float] = deque(maxlen=LATENCY_WINDOW)
-        watched = ["main", "mapping", "merging"] + (["sharing"] if config.sharing.enabled else [])
+        watched = (["main", "mapping", "merging"] + (["sharing"] if config.sharing.enabled else [])
+                   + (["obstacles"] if obstacles_on(config) else []))  # the FC's obstacle feed
         self.progress = WorkerProgress(watched, HEALTH_MAX_AGE_S, HEALTH_BUSY_QUIET_S)
         self._stalled: dict[str, str] = {}
         self._health_lock = threading.Lock()
@@ -314,7 +323,7 @@ class Daemon:
             progress=self.progress,
             start_error=self.merge_start_error,
         )
-        self.obstacles = self._make_obstacles() if config.obstacles.enabled else None
+        self.obstacles = self._make_obstacles() if obstacles_on(config) else None
         self.viewer = None
         self.control = ControlServer(
             config.daemon.control_socket,
@@ -423,6 +432,7 @@ class Daemon:
                 global_map=self.merger.global_map,
                 pose=lambda: None if self.link.odometry_stale() else self.link.poses.latest(),
                 send=self.link.send_obstacle_distance,
+                fc_demand=self.link.obstacle_demand.demand,
             )
         except ValueError as e:
             raise StartupError(str(e)) from e
@@ -503,7 +513,8 @@ class Daemon:
                 raise StartupError(f"sharing on port {self.config.sharing.port}: {self._sharing_error}")
         self._spawn("coopd-merging", "merging", self.merger.run)
         if self.obstacles is not None:
-            self._spawn("coopd-obstacles", "obstacles", self.obstacles.run)
+            self._spawn("coopd-obstacles", "obstacles",
+                        lambda: self.obstacles.run(beat=lambda: self.progress.beat("obstacles")))
         if self.config.viewer.enabled or self.config.viewer.record_dir:
             self.viewer = self._start_viewer()
             self._spawn("coopd-viewer", "viewer", self.viewer.run)

@@ -82,7 +82,8 @@ def build(daemon) -> dict:
         "sharing": None if daemon.sharing is None else _jsonable(daemon.sharing.stats()),
         "merges": merges,
         "merging": merges["state"],
-        "obstacles": {"enabled": False} if daemon.obstacles is None else daemon.obstacles.status(),
+        "obstacles": ({"enabled": False, "when_fc_asks": False, "sending": False, "fc": "not asked"}
+                      if daemon.obstacles is None else daemon.obstacles.status()),
         "viewer": {"enabled": False} if daemon.viewer is None else daemon.viewer.status(),
         "memory": {**daemon.budget.snapshot(), **daemon.rss_watch.status()},
         "threads": threads(daemon),

@@ -30,12 +30,15 @@ ROLE_NICE = {
 merging low; the operator's live view lowest)."""
 
 
-def run_at_rate(step, rate_hz: float, stop: threading.Event, counters: dict, name: str) -> None:
+def run_at_rate(step, rate_hz: float, stop: threading.Event, counters: dict, name: str,
+                beat=lambda: None) -> None:
     """Call step() every 1/rate_hz s until stop is set (late steps do not pile up); an exception in one
-    step is counted in counters["errors"], logged for the first three, and the next step comes as usual."""
+    step is counted in counters["errors"], logged for the first three, and the next step comes as usual.
+    beat() is called before each step (WorkerProgress.beat: a step that hangs stops the beats)."""
     period = 1.0 / rate_hz
     next_at = time.monotonic()
     while not stop.is_set():
+        beat()
         try:
             step()
         except Exception:

@@ -24,6 +24,7 @@ from . import discovery, mtp, versions
 from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
 from .wire_options import DEFAULT_BRICK_EDGE, MSG_MAP_DELTA
+from .zenoh_link import ZenohLink, ZenohSettings
 
 log = logging.getLogger("coopd.sharing")
 
@@ -68,6 +69,10 @@ class SharingConfig:
     delta_brick_edge: int = DEFAULT_BRICK_EDGE
     """Cells per brick edge of the deltas we send (4, 8, 16, 32 or 64)."""
     transport: TransportSettings = field(default_factory=TransportSettings)
+    mtp: bool = True
+    """Serve and scan over MTP (TCP)."""
+    zenoh: ZenohSettings | None = None
+    """Also (or, without mtp, only) publish and receive over Zenoh (zenoh_link); None: not."""
 
 
 def _notify(callback: Callable[[int, int], None] | None, name: str, summary: MessageSummary) -> None:
@@ -144,11 +149,14 @@ class SharingService:
         self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
                                  config.listen_host, config.port, self._wants, ledger=budget,
                                  deltas=config.deltas)
+        self.zenoh = None if config.zenoh is None else ZenohLink(
+            config.zenoh, config.vehicle_id, config.transport.swarm_key, inspect, self._accept,
+            self.peers.failure, config.transport.max_bytes, ledger=budget)
         self._own: tuple[int, bytes] | None = None
         self._bricks = None
+        """The BrickLedger of our published maps (coopd.sharing.delta), once one came with its grid."""
         self._delta_refused_by: set[int] = set()
         """Peers that refused a delta although their hello said they read them: sent full maps only."""
-        """The BrickLedger of our published maps (coopd.sharing.delta), once one came with its grid."""
         self._own_result: tuple[int, bytes] | None = None
         self._update = threading.Condition()
         self._stop = threading.Event()
@@ -166,13 +174,18 @@ class SharingService:
 
     # ------------------------------------------------------------------ lifecycle
     @property
-    def address(self) -> tuple[str, int]:
-        return self._server.address
+    def address(self) -> tuple[str, int] | None:
+        """Where the MTP server listens (None without MTP)."""
+        return self._server.address if self.config.mtp else None
 
     def start(self) -> "SharingService":
-        self._server.start()
-        self._scanner = threading.Thread(target=self._scan_loop, name="coopd-share-discovery", daemon=True)
-        self._scanner.start()
+        if self.config.mtp:
+            self._server.start()
+            self._scanner = threading.Thread(target=self._scan_loop, name="coopd-share-discovery",
+                                             daemon=True)
+            self._scanner.start()
+        if self.zenoh is not None:
+            self.zenoh.start()
         return self
 
     def stop(self) -> None:
@@ -188,6 +201,8 @@ class SharingService:
         for s in senders:
             s.thread.join(5)
         self._server.stop()
+        if self.zenoh is not None:
+            self.zenoh.stop()
 
     # ------------------------------------------------------------------ publishing
     def publish(self, message: bytes, version: int, grid=None) -> None:
@@ -212,6 +227,8 @@ class SharingService:
             self._own = (version, bytes(message))
             self._bricks = bricks
             self._update.notify_all()
+        if self.zenoh is not None:
+            self.zenoh.publish("map", self._own[1])
 
     @property
     def delta_bytes(self) -> int:
@@ -236,6 +253,8 @@ class SharingService:
                                  f"{self._own_result[0]}")
             self._own_result = (version, bytes(message))
             self._update.notify_all()
+        if self.zenoh is not None:
+            self.zenoh.publish("merge", self._own_result[1])
 
     def pending_for(self, peer_vid: int) -> list[tuple[int, int, bytes, str]]:
         """(origin, version, message, kind) this peer lacks: our map and merge result, and with relay,
@@ -532,7 +551,8 @@ class SharingService:
         own = self._own
         snap = self.peers.snapshot()
         snap.update({
-            "vehicle_id": self.vehicle_id, "listen": host_port(*self.address),
+            "vehicle_id": self.vehicle_id,
+            "listen": None if self.address is None else host_port(*self.address),
             "published_version": None if own is None else own[0],
             "published_result_version": None if self._own_result is None else self._own_result[0],
             "received_maps": {m.vehicle_id: m.version for m in self.received.all()},
@@ -545,7 +565,10 @@ class SharingService:
             "connections_accepted": self._server.accepted,
             "refused_busy": self._server.refused_busy, "evicted_idle": self._server.evicted_idle,
             "scans": self.scans,
+            "transports": ["mtp"] * self.config.mtp + ["zenoh"] * (self.zenoh is not None),
         })
+        if self.zenoh is not None:
+            snap["zenoh"] = self.zenoh.stats()
         return snap
 
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pymavlink.dialects.v20 import common as mav
 
 from .clock import ClockSync
+from .fc_params import ObstacleDemandWatch
 from .frame_continuity import ESTIMATOR_RESET, FC_REBOOT, ContinuityLimits, FrameContinuity
 from .odometry import OdometryLimits, OdometryTracker
 from .pose_buffer import PoseBuffer, PoseSample
@@ -55,6 +56,8 @@ class LinkConfig:
     odometry: OdometryLimits = field(default_factory=OdometryLimits)
     continuity: ContinuityLimits = field(default_factory=ContinuityLimits)
     """When the FC's frame after a reboot or estimator reset counts as the old one continued."""
+    watch_obstacle_demand: bool = False
+    """Ask the FC whether it uses obstacle data (CP_DIST / PRX1_TYPE: fc_params) and keep asking."""
     signing_key: bytes | None = field(default=None, repr=False)
     """MAVLink 2 signing key (32 bytes): sign ours, accept only validly signed FC messages; None: off."""
 
@@ -100,6 +103,8 @@ class VehicleLink:
         self.frames = FrameContinuity(config.continuity, config.pose_buffer_capacity, config.pose_max_gap_s)
         """The FC frame -> map frame correction, and the mapping pause after a frame break."""
         self.clock = ClockSync()
+        self.obstacle_demand = ObstacleDemandWatch()
+        """Whether the FC is set up to use OBSTACLE_DISTANCE (its parameters, asked when configured)."""
         self.counters: Counter = Counter()
         self.target_system = config.target_system
         self.state = "connecting"
@@ -258,6 +263,7 @@ class VehicleLink:
             if self._is_autopilot(m):
                 self._last_heartbeat = now
                 self._heartbeat_in_read = True  # the FC's address may move only with its heartbeat
+                self.obstacle_demand.follow(m.autopilot)
         elif kind == "ODOMETRY":
             self._last_odometry_msg = now
             self._take_pose(m.time_usec * 1e-6, lambda: self.odometry.from_odometry(m), now)
@@ -271,6 +277,10 @@ class VehicleLink:
             self._on_timesync(m, now)
         elif kind == "SYSTEM_TIME":
             self.clock.on_system_time(m.time_boot_ms, now)
+        elif kind == "PARAM_VALUE":
+            name = m.param_id.split("\x00", 1)[0] if isinstance(m.param_id, str) else ""
+            if self.obstacle_demand.on_value(name, m.param_value, m.param_type):
+                self.counters["obstacle_params_heard"] += 1
         elif kind == "COMMAND_ACK" and m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
             self.counters[f"interval_ack_{m.result}"] += 1
         return True
@@ -364,6 +374,10 @@ class VehicleLink:
                 self._obstacles = None  # computed for a pose the FC may no longer hold: never late
             return
         self._send_obstacles()
+        if self.config.watch_obstacle_demand:
+            for name in self.obstacle_demand.due(now):
+                self.mav.send(self.mav.param_request_read_encode(self.target_system, 1, name.encode(), -1))
+                self.counters["obstacle_params_asked"] += 1
         est = self.clock.estimate()
         period = cfg.timesync_period_s if est is not None and est.samples >= 10 else cfg.timesync_period_s / 5
         if now - t["timesync"] >= period:

@@ -3,6 +3,7 @@ this engineer's range (MAVLink 15300-15399, sharing 15400-15499), control reques
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -218,6 +219,26 @@ def workdir(prefix: str) -> Path:
     d = Path(tempfile.mkdtemp(prefix=prefix, dir="/tmp"))
     os.chmod(d, 0o755)
     return d
+
+
+def run_in_threads(daemons) -> list[threading.Thread]:
+    """Start in-process daemons and run each one's main loop on a thread of its own."""
+    runners = []
+    for d in daemons:
+        d.start()
+        runners.append(threading.Thread(target=d.run, daemon=True))
+        runners[-1].start()
+    return runners
+
+
+def stop_all(sim, daemons, runners, wd: Path) -> None:
+    """Stop the simulation, then each in-process daemon (its loop thread joined), and remove wd."""
+    sim.stop()
+    for d, r in zip(daemons, runners, strict=False):
+        d.request_stop("test")
+        r.join(5)
+        d.shutdown()
+    shutil.rmtree(wd, ignore_errors=True)
 
 
 class NotifyListener:

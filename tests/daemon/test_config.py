@@ -97,6 +97,8 @@ BAD = [
     ("[viewer]\nport = 0", "viewer.port", "outside"),
     ("[viewer]\nhost = 'localhost'", "viewer.host", "IP address"),
     ("[viewer]\nrate_hz = 100", "viewer.rate_hz", "outside"),
+    ("[viewer]\nenabled = true\nhost = '0.0.0.0'", "viewer.host", "not loopback"),
+    ("[viewer]\nenabled = true\nhost = '10.1.2.3'\nopen = 'yes'", "viewer.open", "true or false"),
     ("[viewer]\ncolour = 'rainbow'", "viewer.colour", "one of"),
     ("[viewer]\nenabled = 'yes'", "viewer.enabled", "true or false"),
     ("[daemon]\nmemory_mb = 8", "daemon.memory_mb", "outside"),
@@ -157,6 +159,10 @@ def test_viewer_is_off_by_default_on_loopback_and_turned_on_by_the_file():
     c = parse_config("[viewer]\nenabled = true\nhost = '::1'\nport = 9000\ncolour = 'source'\n")
     assert c.viewer.enabled and c.viewer.host == "::1" and c.viewer.port == 9000
     assert c.viewer.colour == "source"
+    assert viewer.open is False  # off loopback only when the operator opts out of authentication
+    c = parse_config("[viewer]\nenabled = true\nhost = '0.0.0.0'\nopen = true\n")
+    assert c.viewer.host == "0.0.0.0" and c.viewer.open
+    assert parse_config("[viewer]\nhost = '0.0.0.0'\n").viewer.host == "0.0.0.0"  # not served: no risk
 
 
 def test_obstacles_are_off_by_default_and_turned_on_by_the_file():

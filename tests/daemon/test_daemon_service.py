@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 import types
+from contextlib import contextmanager
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -180,6 +181,24 @@ def test_sd_notify_ready_status_and_watchdog_only_while_mapping_lives(wd):
     assert listener.with_field("STOPPING=1")
 
 
+@contextmanager
+def _running(d: Daemon, listener: NotifyListener, *releases: threading.Event):
+    """d runs in a thread until the block ends; then the events are set (a hung step goes on), d
+    stops and the listener closes."""
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        yield
+    finally:
+        for e in releases:
+            e.set()
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+        listener.close()
+
+
 def _pings_after(listener, t: float) -> list[float]:
     return [tp for tp, _ in listener.with_field("WATCHDOG=1") if tp > t]
 
@@ -257,6 +276,41 @@ def test_a_hung_merging_or_sharing_thread_stops_the_watchdog_and_is_logged(wd, w
         runner.join(5)
         d.shutdown()
         listener.close()
+
+
+def test_a_hung_obstacle_feed_stops_the_watchdog(wd, caplog):
+    """The flight controller's obstacle feed is watched like the other workers: an update blocked (on
+    the mapping lock, say) stops the pings with one ERROR line naming the thread; released, they resume."""
+    listener = NotifyListener(wd)
+    notifier = Notifier("socket", {"NOTIFY_SOCKET": listener.path, "WATCHDOG_USEC": "400000"})
+    cfg = replace(_config(wd), obstacles=replace(_config(wd).obstacles, enabled=True))
+    d = Daemon(cfg, notifier=notifier)
+    assert "obstacles" in d.progress.watched()
+    hang, release = threading.Event(), threading.Event()
+    updates = []
+
+    def update():
+        updates.append(time.monotonic())
+        if hang.is_set():
+            release.wait(30)
+
+    d.obstacles.update = update
+    caplog.set_level("INFO", logger="coopd.daemon")
+    with _running(d, listener, release):
+        assert wait_until(lambda: listener.with_field("READY=1") and len(updates) > 10, 5)
+        assert d.healthy()
+        hang.set()
+        time.sleep(3.5)  # 3 s without looping, and the watchdog's interval
+        t_quiet = time.monotonic()
+        time.sleep(1.0)
+        assert not _pings_after(listener, t_quiet), d.progress.stalled()
+        assert list(d.stalled_threads()) == ["obstacles"]
+        errors = [r.getMessage() for r in caplog.records
+                  if r.levelname == "ERROR" and r.getMessage().startswith("thread obstacles")]
+        assert len(errors) == 1 and "has not looped" in errors[0], errors
+        hang.clear()
+        release.set()
+        assert wait_until(lambda: _pings_after(listener, t_quiet + 1.0), 5)
 
 
 def test_a_build_without_merging_is_a_warning_not_an_error(caplog, monkeypatch):

@@ -137,10 +137,65 @@ def test_the_daemon_sends_obstacle_distance_at_the_configured_rate(wd):
         d.shutdown()
 
 
-def test_obstacles_off_sends_nothing_and_a_huge_window_stops_the_start(wd):
+def fc_params_answering(values: dict[str, float]):
+    """A loopback FC's send hook: odometry, and PARAM_VALUE for each PARAM_REQUEST_READ of a name in
+    values (REAL32, as PX4 sends CP_DIST)."""
+    clock = [10.0]
+
+    def send(fc):
+        clock[0] += 0.05
+        fc.odometry(clock[0])
+        for m in fc.messages("PARAM_REQUEST_READ"):
+            if m.param_id in values and not getattr(m, "answered", False):
+                m.answered = True
+                fc.mav.send(fc.mav.param_value_encode(m.param_id.encode(), values[m.param_id],
+                                                      mav.MAV_PARAM_TYPE_REAL32, 1, 0))
+
+    return send
+
+
+def test_by_default_it_sends_only_while_the_fc_says_it_uses_obstacle_data(wd, caplog):
+    """The default config: coopd asks the FC (PX4 here) for CP_DIST; -1 (collision prevention off):
+    nothing is sent; the FC reporting CP_DIST = 1 m (after a ground station set it): sending starts,
+    each change one log line."""
     port = free_port()
     d = Daemon(daemon_config(wd, port), merge_fn=None)
-    assert d.obstacles is None and d.handle_status({})["obstacles"] == {"enabled": False}
+    caplog.set_level("INFO", logger="coopd.daemon")
+    d.start()
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    fc = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=1)
+    values = {"CP_DIST": -1.0}
+    send = fc_params_answering(values)
+    try:
+        asked = lambda: d.link.counters["obstacle_params_heard"] >= 1  # noqa: E731
+        assert fc.run_until(asked, 10.0, 0.05, send), d.link.counters
+        assert [m.param_id for m in fc.messages("PARAM_REQUEST_READ")][:1] == ["CP_DIST"]
+        fc.run_until(lambda: False, seconds=1.0, period=0.05, send=send)
+        status = d.handle_status({})["obstacles"]
+        assert not fc.messages("OBSTACLE_DISTANCE") and not status["sending"], status
+        assert "CP_DIST = -1" in status["fc"]
+        row = [line for line in format_status(d.handle_status({})).splitlines() if "obstacles" in line]
+        assert row and "not sending; FC: CP_DIST = -1 m (collision prevention off)" in row[0], row
+        # a ground station turns collision prevention on: the FC sends the new PARAM_VALUE unasked
+        fc.mav.send(fc.mav.param_value_encode(b"CP_DIST", 1.0, mav.MAV_PARAM_TYPE_REAL32, 1, 0))
+        assert fc.run_until(lambda: len(fc.messages("OBSTACLE_DISTANCE")) >= 3, 10.0, 0.05, send)
+        status = d.handle_status({})["obstacles"]
+        assert status["sending"] and status["fc"] == "CP_DIST = 1 m" and not status["enabled"], status
+        lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("obstacles:")]
+        assert len(lines) == 2 and "not sending" in lines[0] and "the FC uses them: CP_DIST = 1 m" in lines[1]
+    finally:
+        fc.close()
+        d.request_stop("test")
+        runner.join(5)
+        d.shutdown()
+
+
+def test_obstacles_off_sends_nothing_and_a_huge_window_stops_the_start(wd):
+    port = free_port()
+    d = Daemon(daemon_config(wd, port, when_fc_asks=False), merge_fn=None)
+    assert d.obstacles is None and not d.handle_status({})["obstacles"]["sending"]
+    assert not d.link.config.watch_obstacle_demand  # the FC is not even asked
     with pytest.raises(StartupError, match="obstacles"):
         Daemon(daemon_config(wd, free_port(), enabled=True, max_distance_m=30.0, band_below_m=5.0),
                merge_fn=None)

@@ -1,30 +1,27 @@
-"""The proof of the shared map reaching the flight controller: drone 1 maps a room; drone 2, which has
-never seen it (no camera), is commanded at 1 m/s (offboard velocity) through a door it never mapped
-toward the room's far wall. Its coopd sends OBSTACLE_DISTANCE from the global map (drone 1's map,
-received over MTP and merged), the emulator's collision prevention (CP_DIST) stops it at least 0.5 m
-short of the wall; with collision prevention off it flies on and the emulator records the contact.
+"""The proof of the shared map reaching the flight controller: drone 1 maps two rooms joined by a door;
+drone 2 looks around the first room only, then is commanded at 1 m/s (offboard velocity) through the
+door toward the second room's far wall, flying backwards so its own camera never sees that wall. Its
+coopd registers drone 1's map onto its own (the daemon's own merging: the FC frames differ by their
+origins and a quarter turn) and sends OBSTACLE_DISTANCE from the global map; the emulator's collision
+prevention (CP_DIST) stops it at least 0.5 m short of the wall; with collision prevention off it flies
+on and the emulator records the contact.
 
 Two coopd daemons in this process against firmware_sim in real time, over MAVLink and the camera
-socket on loopback. Registration is not what is tested here (tests/merging does): drone 2's merge
-function places drone 1's map by the simulator's true offset between their map frames
-(merge_with_true_offset), then fuses it exactly as merging does (fuse_transformed)."""
+socket on loopback."""
 
 from __future__ import annotations
 
 import math
-import shutil
 import threading
 import time
 
 import numpy as np
 import pytest
-from daemon_harness import in_process_memory_mb, wait_until, workdir
+from daemon_harness import in_process_memory_mb, run_in_threads, stop_all, wait_until, workdir
 
 from coopd.daemon.config import from_dict
 from coopd.daemon.service import Daemon
-from coopd.grid import OCCUPIED_THRESHOLD, fuse_transformed
-from coopd.merging.multi import GlobalMergeResult
-from coopd.merging.pair import MergeResult
+from coopd.grid.cells import occupied_mask
 from firmware_sim.camera import CameraConfig
 from firmware_sim.flight import MAIN_OFFBOARD, Setpoint
 from firmware_sim.shapes import box_from_corners
@@ -60,25 +57,24 @@ def two_rooms() -> World:
     return World("two_rooms", 0, shapes, np.array([-0.4, -0.4, -0.2]), np.array([11.6, 8.4, 2.8]), loop)
 
 
-def merge_with_true_offset(daemons: list[Daemon]):
-    """A merge function for drone 2's daemon that places each received map by the simulator's truth:
-    both vehicles report the world frame (frame="world", no noise), so the map frames differ by their
-    origins only; fused exactly as merging fuses (fuse_transformed)."""
+def map_transform_truth(sim: Simulation, daemons: list[Daemon], source: int, target: int) -> np.ndarray:
+    """The true 4x4 from vehicle source's map frame to vehicle target's: a map point is the FC's
+    reporting-frame point (firmware_sim's frame) less the origin coopd took at its first pose."""
 
-    def merge(reference, others, params=None, **_):
-        merged = reference.copy()
-        results = []
-        started = len(daemons) == 2  # the daemon's own warm-up merges before the list is complete
-        for grid in others:
-            t = np.eye(4)
-            if started:
-                theirs, mine = (np.asarray(d.link.odometry.origin_enu) for d in daemons)
-                t[:3, 3] = theirs - mine
-            fuse_transformed(merged, grid, t, OCCUPIED_THRESHOLD)
-            results.append(MergeResult(True, t, 0, 1.0, 0, 0, 0.0, "accepted"))
-        return GlobalMergeResult(merged, results, 1)
+    def world_to_map(i: int) -> np.ndarray:
+        odo = sim.vehicle(i).odometry
+        a = np.eye(4)
+        a[:3, :3] = odo.frame_rot.T
+        a[:3, 3] = -odo.frame_rot.T @ odo.origin - np.asarray(daemons[i].link.odometry.origin_enu)
+        return a
 
-    return merge
+    return world_to_map(target) @ np.linalg.inv(world_to_map(source))
+
+
+def displacement_m(estimate, truth, points) -> float:
+    """Mean distance between points (N x 3) moved by the estimated and by the true transform."""
+    p = np.c_[points, np.ones(len(points))]
+    return float(np.linalg.norm((p @ np.asarray(estimate).T - p @ truth.T)[:, :3], axis=1).mean())
 
 
 def daemon_config(wd, i: int, mav_port: int, share_ports: list[int], camera: str, obstacles: dict):
@@ -95,22 +91,42 @@ def daemon_config(wd, i: int, mav_port: int, share_ports: list[int], camera: str
     })
 
 
+def own_cells_near(daemon: Daemon, sim: Simulation, beyond_x: float) -> int:
+    """Occupied cells of the daemon's own map (not its global map) beyond world x = beyond_x, above the
+    floor."""
+    with daemon.mapper.lock:
+        grid = daemon.mapper.grid
+        keys = np.argwhere(occupied_mask(grid.cells)) + grid.offset
+        points = grid.centres_of(keys)
+    odo = sim.vehicle(daemon.config.vehicle.id - 1).odometry
+    world = (points + daemon.link.odometry.origin_enu) @ odo.frame_rot.T + odo.origin
+    return int(((world[:, 0] > beyond_x) & (world[:, 2] > 0.3)).sum())
+
+
 class Pilot:
-    """Flies one emulated vehicle from the test thread (the simulation runs in its own)."""
+    """Flies one emulated vehicle from a test thread (the simulation runs in its own). Targets are given
+    in the world frame and handed to the FC in its own reporting frame (each FC's frame starts at its
+    vehicle's start pose, turned with its heading)."""
 
     def __init__(self, sim: Simulation, i: int):
         self.sim, self.i, self.fc = sim, i, sim.vehicle(i).fc
+        self.odometry = sim.vehicle(i).odometry
 
     def takeoff(self) -> None:
         with self.sim.lock:
             self.fc.last_state = self.sim.estimated_state(self.sim.vehicle(self.i))
             self.fc.arm(self.sim.time)
             self.fc.takeoff(self.sim.time, ALTITUDE)
+        wait_until(lambda: self.sim.true_pose(self.i)[0][2] > ALTITUDE - 0.1, 15, 0.1)
+
+    def local_yaw(self, yaw_deg: float) -> float:
+        return math.radians(yaw_deg) - self.odometry.frame_yaw
 
     def goto(self, x: float, y: float, yaw_deg: float, within_s: float = 20.0) -> None:
-        """Fly to (x, y) at the altitude facing yaw_deg (ENU), and wait until there."""
+        """Fly to world (x, y) at the altitude facing yaw_deg (world ENU), and wait until there."""
+        target = self.odometry.world_to_local_point([x, y, ALTITUDE])
         with self.sim.lock:
-            self.fc.reposition(self.sim.time, np.array([x, y, ALTITUDE]), math.radians(yaw_deg))
+            self.fc.reposition(self.sim.time, target, self.local_yaw(yaw_deg))
         wait_until(lambda: np.linalg.norm(self.sim.true_pose(self.i)[0][:2] - [x, y]) < 0.15, within_s, 0.1)
 
     def sweep(self, x: float, y: float) -> None:
@@ -118,6 +134,11 @@ class Pilot:
         for yaw in range(0, 361, 45):
             self.goto(x, y, yaw)
             time.sleep(1.0)
+
+    def velocity(self, world_velocity, yaw_deg: float) -> Setpoint:
+        """An offboard setpoint: this world velocity, facing yaw_deg (world ENU)."""
+        return Setpoint(vel=self.odometry.frame_rot.T @ np.asarray(world_velocity, float),
+                        yaw=self.local_yaw(yaw_deg))
 
     def x(self) -> float:
         return float(self.sim.true_pose(self.i)[0][0])
@@ -128,28 +149,33 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
     mav_port = free_port()
     share_ports = [free_port(), free_port()]
     # a depth camera reading to 10 m (as a RealSense does): coopd clears rays beyond its 5 m max range
-    # up to 5 m, so a doorway seen from afar is mapped free, not left unknown
-    sim = Simulation(two_rooms(), 2, seed=0, noise="none", frame="world", mavlink_base_port=mav_port,
-                     start_poses=[(1.0, 6.5, 0.0, 0.0), (1.0, 4.0, 0.0, 0.0)], camera_dir=str(wd / "cam"),
-                     camera=CameraConfig(max_m=10.0))
+    # up to 5 m, so a doorway seen from afar is mapped free, not left unknown. Drone 2 starts facing
+    # north, so the two FC frames (and maps) differ by a quarter turn as well as by their origins.
+    sim = Simulation(two_rooms(), 2, seed=0, noise="none", mavlink_base_port=mav_port,
+                     start_poses=[(1.0, 6.5, 0.0, 0.0), (1.0, 4.0, 0.0, math.pi / 2)],
+                     camera_dir=str(wd / "cam"), camera=CameraConfig(max_m=10.0))
     daemons: list[Daemon] = []
     runners = []
     try:
-        cameras = [sim.vehicle(0).camera_path, str(wd / "cam" / "none.sock")]  # drone 2: no camera
-        obstacles = [{}, {"enabled": True, "rate_hz": 10.0, "max_distance_m": 3.0}]
+        # the default [obstacles] (when_fc_asks): drone 2's FC has collision prevention on, drone 1's not
+        obstacles = [{}, {"rate_hz": 10.0, "max_distance_m": 3.0}]
+        sim.vehicle(1).fc.params["CP_DIST"] = 1.0
         for i in range(2):
-            merge_fn = merge_with_true_offset(daemons) if i == 1 else None
-            daemons.append(Daemon(daemon_config(wd, i, mav_port, share_ports, cameras[i], obstacles[i]),
-                                  merge_fn=merge_fn))
-        for d in daemons:
-            d.start()
-            runners.append(threading.Thread(target=d.run, daemon=True))
-            runners[-1].start()
+            daemons.append(Daemon(daemon_config(wd, i, mav_port, share_ports, sim.vehicle(i).camera_path,
+                                                obstacles[i])))
+        runners = run_in_threads(daemons)
         sim.start()
         mapper, dasher = Pilot(sim, 0), Pilot(sim, 1)
-        # drone 1 maps room A, goes through the door and maps room B, then lands out of the way. It
-        # looks all around from two points per room, each in view of the other: the cells within the
-        # camera's minimum range of one are seen from the other.
+        # drone 2 looks around room A from where it took off (so it has a map to register drone 1's
+        # onto), while drone 1 maps room A, goes through the door and maps room B, then lands out of
+        # the way. Drone 1 looks all around from two points per room, each in view of the other: the
+        # cells within the camera's minimum range of one are seen from the other.
+        def look_around_room_a():
+            dasher.takeoff()
+            dasher.sweep(1.0, 4.0)
+
+        looking = threading.Thread(target=look_around_room_a, daemon=True)
+        looking.start()
         mapper.takeoff()
         for x, y in ((3.0, 5.8), (3.0, 2.2), (5.0, 4.0), (7.5, 4.0), (8.5, 5.8), (8.5, 2.2)):
             here = sim.true_pose(0)[0]
@@ -159,33 +185,39 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
         mapper.goto(7.0, 7.2, 90.0)
         with sim.lock:
             mapper.fc.land(sim.time)
-        frames = daemons[0].frames_mapped
-        assert frames > 50, daemons[0].handle_status({})["mapping"]
-        # drone 2's coopd receives that map and merges it into its global map
-        merged = wait_until(lambda: daemons[1].merger.global_map() is not None
-                            and daemons[1].merger.offsets.get(1, {}).get("accepted"), 30, 0.5)
+        looking.join(60)
+        assert daemons[0].frames_mapped > 50, daemons[0].handle_status({})["mapping"]
+        # drone 2's coopd registers drone 1's map onto its own (the daemon's own merging) and places it
+        truth = map_transform_truth(sim, daemons, source=0, target=1)
+        far_wall = np.array([[FAR_WALL_X, y, z] for y in (1.0, 4.0, 7.0) for z in (0.5, 2.0)])
+        odo1 = sim.vehicle(0).odometry
+        far_wall_in_map1 = (far_wall - odo1.origin) @ odo1.frame_rot - daemons[0].link.odometry.origin_enu
+        merged = wait_until(lambda: daemons[1].merger.offsets.get(1, {}).get("accepted"), 60, 0.5)
+        fit = daemons[1].merger.offsets.get(1, {})
         assert merged, daemons[1].handle_status({})["merges"]
-        assert daemons[1].mapper.grid.counts().known == 0  # drone 2 itself never mapped anything
-        # drone 2: collision prevention on, take off, then 1 m/s toward the far wall through the door
+        wall_error = displacement_m(np.reshape(fit["transform"], (4, 4)), truth, far_wall_in_map1)
+        assert wall_error <= 0.15, (wall_error, fit, truth.round(3).tolist())
+        # drone 2 never saw room B: nothing of its own map is near the far wall
+        own_near_wall = own_cells_near(daemons[1], sim, FAR_WALL_X - 3.0)
+        assert own_near_wall == 0, own_near_wall  # nothing of room B but its floor (seen from afar)
+        # drone 2: 1 m/s toward the far wall through the door, flying backwards (facing west), so its
+        # camera never sees room B: only drone 1's map shows the wall
+        assert not daemons[0].handle_status({})["obstacles"]["sending"]  # its FC does not use them
+        dasher.goto(1.0, 4.0, 180.0)
+        backwards = dasher.velocity([1.0, 0.0, 0.0], 180.0)
         with sim.lock:
-            dasher.fc.params["CP_DIST"] = 1.0
-        dasher.takeoff()
-        wait_until(lambda: sim.true_pose(1)[0][2] > ALTITUDE - 0.1, 15, 0.1)
-        forward = Setpoint(vel=np.array([1.0, 0.0, 0.0]), yaw=0.0)
-        with sim.lock:
-            dasher.fc.set_offboard_setpoint(forward)
+            dasher.fc.set_offboard_setpoint(backwards)
             assert dasher.fc.set_mode(MAIN_OFFBOARD, 0, sim.time) == 0
         closest, t_end = math.inf, time.monotonic() + 25.0
         while time.monotonic() < t_end:
             with sim.lock:
-                dasher.fc.set_offboard_setpoint(forward)
+                dasher.fc.set_offboard_setpoint(backwards)
             closest = min(closest, FAR_WALL_X - dasher.x())
             time.sleep(0.1)
         status = daemons[1].handle_status({})["obstacles"]
         g = daemons[1].merger.global_map()[0]
         report = {"global": (g.counts(), [b.round(2).tolist() for b in g.bounds_m()]),
-                  "map_pose": daemons[1].link.poses.latest().position.round(2).tolist(),
-                  "origins": [d.link.odometry.origin_enu.round(2).tolist() for d in daemons],
+                  "wall_error_m": round(wall_error, 3), "fit": {k: fit[k] for k in ("score", "yaw_deg")},
                   "closest_m": round(closest, 3), "pose": sim.true_pose(1)[0].round(2).tolist(),
                   "last": daemons[1].obstacles.last.tolist(), "obstacles": status,
                   "contacts": sim.contacts(1), "cut_steps": dasher.fc.cp_cut_steps}
@@ -193,21 +225,19 @@ def test_a_wall_only_a_peer_mapped_stops_the_vehicle_short_of_it():
         assert closest - HALF_SPAN >= 0.5, report
         assert sim.vehicle(1).contact_count == 0, report
         assert status["nearest_m"] is not None and status["nearest_m"] <= 1.6, report
+        assert status["sending"] and not status["enabled"] and status["fc"] == "CP_DIST = 1 m", report
+        # its camera looked back the whole way: it saw room B's floor, never the far wall
+        assert own_cells_near(daemons[1], sim, FAR_WALL_X - 1.0) == 0, report
         # collision prevention off: the same command flies it into the wall, and the contact is recorded
         with sim.lock:
             dasher.fc.params["CP_DIST"] = -1.0
         t_end = time.monotonic() + 15.0
         while time.monotonic() < t_end and sim.vehicle(1).contact_count == 0:
             with sim.lock:
-                dasher.fc.set_offboard_setpoint(forward)
+                dasher.fc.set_offboard_setpoint(backwards)
             time.sleep(0.1)
         contacts = sim.contacts(1)
         assert contacts and contacts[0].geom == "wall_far", contacts
         print({**report, "contact_without_cp": contacts[0]})
     finally:
-        sim.stop()
-        for d, r in zip(daemons, runners, strict=False):
-            d.request_stop("test")
-            r.join(5)
-            d.shutdown()
-        shutil.rmtree(wd, ignore_errors=True)
+        stop_all(sim, daemons, runners, wd)

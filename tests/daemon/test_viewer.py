@@ -364,6 +364,7 @@ def test_with_nobody_watching_the_map_is_not_read():
 @pytest.mark.parametrize("host, warned",
                          [("0.0.0.0", True), ("10.1.2.3", True), ("127.0.0.1", False), ("::1", False)])
 def test_a_viewer_off_loopback_is_logged_as_unauthenticated(monkeypatch, caplog, host, warned):
+    """Off loopback only with open = true (the config refuses it otherwise), and a warning at start."""
     import foxglove
 
     class NotListening:  # stands in for the SDK's server: the test binds nothing outside loopback
@@ -375,8 +376,9 @@ def test_a_viewer_off_loopback_is_logged_as_unauthenticated(monkeypatch, caplog,
     asked = []
     monkeypatch.setattr(foxglove, "start_server", lambda **kw: asked.append(kw) or NotListening())
     daemon = FakeDaemon()
-    viewer = MapViewer(ViewerConfig(enabled=True, host=host), local_map=lambda: (daemon.local, daemon.lock),
-                       global_map=lambda: None, pose=lambda: None, peers=lambda: {}, status=lambda: {})
+    viewer = MapViewer(ViewerConfig(enabled=True, host=host, open=warned),
+                       local_map=lambda: (daemon.local, daemon.lock), global_map=lambda: None,
+                       pose=lambda: None, peers=lambda: {}, status=lambda: {})
     with caplog.at_level("WARNING", logger="coopd.daemon"):
         viewer.start()
     viewer.close()

@@ -54,6 +54,51 @@ def test_render_config_is_valid_toml_with_overrides(tmp_path):
     assert cfg.vehicle.id == 2
 
 
+def test_the_live_view_is_served_on_each_drone_address(tmp_path):
+    """viewer_port: each daemon serves its view on its swarm address; open only where that address is
+    not loopback (netns), which the daemon's own validation requires."""
+    from firmware_sim.netns import LoopbackLab
+
+    swarm = Swarm(SwarmSettings(drones=2, network="loopback", open=True, viewer_port=8765,
+                                config={"viewer": {"record_dir": str(tmp_path / "rec")}}),
+                  workdir=tmp_path, say=lambda _: None)
+    swarm.lab = LoopbackLab()
+    for lab in (swarm.lab, NetnsLabAddresses("10.214.9")):
+        swarm.lab = lab
+        for i in (0, 1):
+            lab.add_host(i + 1)
+            viewer = swarm.config_sections(i)["viewer"]
+            assert viewer["host"] == lab.address(i + 1) and viewer["port"] == 8765
+            assert viewer["open"] == lab.address(i + 1).startswith("10.")
+            assert viewer["record_dir"] == str(tmp_path / "rec")  # the settings' config still applies
+            assert swarm.viewer_url(i) == f"ws://{lab.address(i + 1)}:8765"
+            path = tmp_path / f"c{i}.toml"
+            path.write_text(render_config(swarm.config_sections(i)))
+            assert load_config(path).viewer.enabled
+    assert Swarm(SwarmSettings(), workdir=tmp_path, say=lambda _: None).viewer_url(0) is None
+
+
+class NetnsLabAddresses:
+    """A netns lab's addresses without creating namespaces (the config the swarm writes for them)."""
+
+    mode = "netns"
+
+    def __init__(self, subnet: str):
+        self.subnet = subnet
+
+    def fc_addresses(self, i: int) -> tuple[str, str]:
+        return f"10.215.9.{4 * i + 1}", f"10.215.9.{4 * i + 2}"
+
+    def add_host(self, i: int) -> str:
+        return self.address(i)
+
+    def address(self, i: int) -> str:
+        return f"{self.subnet}.{i}"
+
+    def range_spec(self, n: int) -> str:
+        return f"{self.subnet}.1-{self.subnet}.{n}"
+
+
 @pytest.mark.slow
 def test_two_drones_share_merge_and_leave_nothing_behind():
     settings = SwarmSettings(drones=2, mavlink_base=PORTS, sharing_port=PORTS + 10, speed=2.0,

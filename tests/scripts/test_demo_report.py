@@ -41,11 +41,13 @@ def test_every_demo_daemon_sends_obstacle_distance(demo, tmp_path, record):
 
 
 def test_obstacles_line(demo):
-    status = {"obstacles": {"enabled": True, "sent": 1030, "rate_hz": 10.0, "with_global": 1006, "no_pose": 4,
-                            "nearest_m": 0.3}}
+    status = {"obstacles": {"enabled": True, "sending": True, "sent": 1030, "rate_hz": 10.0,
+                            "with_global": 1006, "no_pose": 4, "nearest_m": 0.3}}
     line = demo.obstacles_line(status, 1124)
     assert line.startswith("obstacles: 1030 OBSTACLE_DISTANCE sent at 10.0 Hz (1006 with the global map, "
                            "4 without a pose), last nearest 0.3 m; the FC has received 1124")
-    assert demo.obstacles_line({"obstacles": {"enabled": False}}, 0) == "obstacles: not enabled"
+    off = {"enabled": False, "sending": False, "sent": 0, "fc": "CP_DIST = -1 m (collision prevention off)"}
+    assert demo.obstacles_line({"obstacles": off}, 0) == (
+        "obstacles: not sent (FC: CP_DIST = -1 m (collision prevention off))")
     assert "nearest -; the FC has received -" in demo.obstacles_line(
-        {"obstacles": {"enabled": True, "sent": 0, "nearest_m": None}}, None)
+        {"obstacles": {"enabled": True, "sending": True, "sent": 0, "nearest_m": None}}, None)

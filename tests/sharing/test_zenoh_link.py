@@ -1,0 +1,138 @@
+"""Maps over Zenoh (coopd.sharing.zenoh_link): the envelope, and sharing services on loopback that
+publish, fetch late, and refuse what the receive path refuses. Sessions listen and connect on
+127.0.0.1 only, multicast scouting off."""
+
+import pytest
+import sharing_testmsg as tm
+from sharing_support import failures, free_port, settings, wait_until
+
+from coopd.sharing.service import SharingConfig, SharingService
+from coopd.sharing.transport import Rejected
+from coopd.sharing.zenoh_link import (
+    ZenohSettings,
+    envelope_cipher,
+    key_expr,
+    parse_key,
+    seal,
+    unseal,
+)
+
+zenoh = pytest.importorskip("zenoh")
+
+KEY = b"k" * 32
+OTHER_KEY = b"o" * 32
+
+
+def test_the_envelope_authenticates_the_message_and_its_key_expression():
+    cipher = envelope_cipher(KEY)
+    key = key_expr("s", 3, "map")
+    message = tm.make(3, 7, b"cells")
+    sealed = seal(cipher, key, message)
+    assert unseal(cipher, key, sealed) == message and message not in sealed  # encrypted
+    with pytest.raises(Rejected, match="authenticate") as e:
+        unseal(cipher, key_expr("s", 4, "map"), sealed)  # moved to another vehicle's key expression
+    assert e.value.cause == "auth"
+    tampered = bytearray(sealed)
+    tampered[-1] ^= 1
+    for bad, cause in ((bytes(tampered), "auth"), (seal(envelope_cipher(OTHER_KEY), key, message), "auth"),
+                       (seal(None, key, message), "auth"), (b"CZ", "malformed"), (b"XX\x00abc", "malformed"),
+                       (sealed[:20], "malformed")):
+        with pytest.raises(Rejected) as e:
+            unseal(cipher, key, bad)
+        assert e.value.cause == cause, bad
+    assert unseal(None, key, seal(None, key, message)) == message  # open swarm
+    with pytest.raises(Rejected, match="has none"):
+        unseal(None, key, sealed)
+
+
+def test_only_this_swarms_keys_are_parsed():
+    assert parse_key("s", "coopd/s/3/map") == (3, "map")
+    assert parse_key("s", "coopd/s/255/merge") == (255, "result")
+    for key in ("coopd/t/3/map", "coopd/s/0/map", "coopd/s/256/map", "coopd/s/x/map", "coopd/s/3/alive",
+                "coopd/s/3/map/extra", "other/s/3/map", "coopd/s/0003/map"):
+        assert parse_key("s", key) is None, key
+
+
+def test_settings_are_checked():
+    for bad in (dict(swarm="a/b"), dict(swarm=""), dict(mode="router"), dict(listen=("0.0.0.0:7447",)),
+                dict(connect=("tcp/",))):
+        with pytest.raises(ValueError):
+            ZenohSettings(**bad)
+
+
+def node(vid: int, listen_port: int, connect=(), key: bytes | None = KEY, swarm: str = "t") -> SharingService:
+    z = ZenohSettings(swarm=swarm, listen=(f"tcp/127.0.0.1:{listen_port}",),
+                      connect=tuple(f"tcp/127.0.0.1:{p}" for p in connect), multicast_scouting=False)
+    cfg = SharingConfig(vehicle_id=vid, mtp=False, zenoh=z, transport=settings(swarm_key=key))
+    return SharingService(cfg, inspect=tm.inspect).start()
+
+
+def test_a_map_reaches_a_peer_newer_versions_follow_and_a_late_joiner_fetches_it():
+    ports = [free_port() for _ in range(3)]
+    a = node(1, ports[0])
+    b = node(2, ports[1], connect=[ports[0]])
+    late = None
+    try:
+        assert a.address is None and a.stats()["transports"] == ["zenoh"]
+        assert wait_until(lambda: a.stats()["zenoh"]["peers"], 10)
+        a.publish(tm.make(1, 5, b"first"), 5)
+        assert wait_until(lambda: b.received.version(1) == 5, 10), b.stats()["zenoh"]
+        assert tm.payload(b.received.get(1).data) == b"first"
+        a.publish(tm.make(1, 6, b"second"), 6)
+        assert wait_until(lambda: b.received.version(1) == 6, 10)
+        # a vehicle that joins now gets the latest map at once, by query, not by waiting for the next one
+        late = node(3, ports[2], connect=[ports[0]])
+        assert wait_until(lambda: late.received.version(1) == 6, 10), late.stats()["zenoh"]
+        assert late.stats()["zenoh"]["fetched"] >= 1 and a.stats()["zenoh"]["queries_answered"] >= 1
+        b.publish(tm.make(2, 9, b"b's"), 9)
+        assert wait_until(lambda: a.received.version(2) == 9, 10)
+        assert b.received.get(2) is None and failures(b) == {} and failures(a) == {}  # own maps not taken
+    finally:
+        for s in (a, b, late):
+            if s is not None:
+                s.stop()
+
+
+def test_what_the_receive_path_refuses_is_counted_and_changes_nothing():
+    ports = [free_port() for _ in range(3)]
+    receiver = node(2, ports[0])
+    wrong_key = node(5, ports[1], connect=[ports[0]], key=OTHER_KEY)
+    raw = zenoh.open(_raw_config(ports[2], ports[0]))
+    try:
+        assert wait_until(lambda: len(receiver.stats()["zenoh"]["peers"]) >= 2, 10)
+        wrong_key.publish(tm.make(5, 3, b"x"), 3)  # another swarm key
+        cipher = envelope_cipher(KEY)
+        # a host with the key is still held to the receive path's rules: a map of vehicle 7 under 6's key
+        raw.put(key_expr("t", 6, "map"), seal(cipher, key_expr("t", 6, "map"), tm.make(7, 1, b"x")))
+        raw.put(key_expr("t", 8, "map"), b"garbage")  # no envelope
+        raw.put(key_expr("t", 9, "map"), seal(cipher, key_expr("t", 9, "map"), b"not a message"))
+        def sealed(vid, message):
+            return seal(cipher, key_expr("t", vid, "map"), message)
+
+        raw.put(key_expr("t", 10, "map"), sealed(10, tm.make(10, 2, b"x" * 16, size=1)))
+        raw.put(key_expr("t", 11, "map"), sealed(11, tm.make(11, 4, b"ok")))
+        assert wait_until(lambda: receiver.received.version(11) == 4, 10), receiver.stats()["zenoh"]
+        expected = {"auth": 1, "key": 1, "malformed": 2, "size": 1}
+        assert wait_until(lambda: failures(receiver) == expected, 10), (failures(receiver), receiver.stats())
+        held = {m.vehicle_id for m in receiver.received.all()}
+        assert held == {11}
+        # an older version of a held map is not taken back
+        raw.put(key_expr("t", 11, "map"), seal(cipher, key_expr("t", 11, "map"), tm.make(11, 3, b"old")))
+        stale = lambda: receiver.stats()["zenoh"].get("stale", 0) == 1  # noqa: E731
+        assert wait_until(stale, 10), receiver.stats()["zenoh"]
+        assert receiver.received.version(11) == 4
+    finally:
+        raw.close()
+        wrong_key.stop()
+        receiver.stop()
+
+
+def _raw_config(listen_port: int, connect_port: int):
+    import json
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{listen_port}"]))
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{connect_port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
