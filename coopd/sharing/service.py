@@ -364,8 +364,9 @@ class SharingService:
         if not stored:
             return mtp.ACK_STALE
         rate = nbytes / arrival.seconds / 1e6 if arrival.seconds > 0 else float("inf")
-        log.info("map of vehicle %d v%d received via %s (%d bytes, %.3f s, %.1f MB/s)",
-                 summary.vehicle_id, summary.version, via, nbytes, arrival.seconds, rate)
+        log.info("map of vehicle %d v%d received via %s (%d bytes%s, %.3f s, %.1f MB/s)",
+                 summary.vehicle_id, summary.version, via, nbytes,
+                 f" as a delta, {summary.size} as a map" if kind == "delta" else "", arrival.seconds, rate)
         try:
             self.arrivals.put_nowait((summary.vehicle_id, summary.version))
         except queue.Full:
