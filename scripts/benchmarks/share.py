@@ -209,6 +209,39 @@ def replay(sequence, deltas: bool, block_size: int, steady_after_s: float, brick
             "publish_ms_mean": round(1000 * sum(publish_s) / len(publish_s), 2)}
 
 
+def delta_costs(size: str = "25M") -> dict:
+    """Seconds of each step of a delta on a building map of `size` with a 10x10x10 patch changed: the
+    ledger's hashing (per published map), making the delta, and the receiver's rebuild and encode;
+    next to the full encode the daemon does for every published map anyway."""
+    from coopd.sharing import delta
+
+    grid = make_grid(size)
+    first = wire.encode_map(grid, wire.MapMeta(1, 1, 0.0))
+    ledger = delta.BrickLedger(DEFAULT_BRICK_EDGE)
+    ledger.record(grid, 1, first)
+    changed = grid.copy()
+    changed.cells[100:110, 100:110, 10:20] = 100
+    t0 = time.perf_counter()
+    second = wire.encode_map(changed, wire.MapMeta(1, 2, 0.0))
+    t1 = time.perf_counter()
+    ledger.record(changed, 2, second)
+    t2 = time.perf_counter()
+    data = ledger.delta_for(1)
+    t3 = time.perf_counter()
+    base = wire.decode_map(first)
+    t4 = time.perf_counter()
+    rebuilt, meta = delta.apply_delta(*base, data)
+    t5 = time.perf_counter()
+    again = wire.encode_map(rebuilt, meta)
+    t6 = time.perf_counter()
+    if again != second:
+        raise RuntimeError("the rebuilt map is not the sender's")
+    return {"cells": grid.size, "full_message_bytes": len(second), "delta_bytes": len(data),
+            "full_encode_s": round(t1 - t0, 4), "ledger_record_s": round(t2 - t1, 4),
+            "make_delta_s": round(t3 - t2, 4), "receiver_decode_base_s": round(t4 - t3, 4),
+            "receiver_apply_s": round(t5 - t4, 4), "receiver_encode_s": round(t6 - t5, 4)}
+
+
 def _ratio(full: float, delta: float) -> float | None:
     return round(full / delta, 2) if delta > 0 else None
 
@@ -244,7 +277,8 @@ def run_delta(world: str, seed: int, drones: int, block_sizes, steady_after_s: f
                     "deltas; steady = after steady_after_s",
             "ratios": ratios, "goal_steady_ratio": DELTA_GOAL_RATIO,
             "goal_met": (default["steady_wire_ratio"] or 0) >= DELTA_GOAL_RATIO,
-            "all_identical": all(d["identical"] for r in rows for d in r["per_drone"]), "runs": rows}
+            "all_identical": all(d["identical"] for r in rows for d in r["per_drone"]),
+            "costs_25M": delta_costs(), "runs": rows}
 
 
 # --------------------------------------------------------------------------------- orchestration
