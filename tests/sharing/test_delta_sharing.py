@@ -72,6 +72,7 @@ def test_two_daemons_end_with_identical_maps_and_deltas_cost_fewer_bytes():
             assert grid.shape == last_grid.shape and np.array_equal(grid.offset, last_grid.offset)
             assert np.array_equal(grid.cells, last_grid.cells)
             assert bytes(b.received.get(1).data) == last_message  # the full message, byte for byte
+            assert wait_until(lambda a=a: peer_stats(a, 2)["maps_sent"] == len(maps), 5)  # last ack counted
             stats = peer_stats(a, 2)
             sent[deltas] = stats
             assert peer_stats(b, 1)["deltas_received"] == stats["deltas_sent"]
@@ -105,9 +106,9 @@ def test_a_peer_that_does_not_read_deltas_gets_full_maps():
 
 
 def test_a_receiver_that_lost_the_base_gets_the_full_map():
-    """The receiver restarted (no map held, same sender connection lost): the sender's next map goes in
-    full; and when the receiver's held map is not the base the sender believes (evicted), the delta is
-    refused with 'base not held' and the full map follows at once."""
+    """When the receiver no longer holds the base the sender believes it holds (its map of the sender was
+    evicted), the delta is refused with 'base not held' and the full map follows at once on the same
+    connection; the next version goes as a delta again."""
     maps = growing_maps(4, seed=2)
     b = real_service(2)
     a = real_service(1, peers=(f"127.0.0.2:{b.address[1]}",))
@@ -127,7 +128,8 @@ def test_a_receiver_that_lost_the_base_gets_the_full_map():
         grid, v, message = maps[3]
         a.publish(message, v, grid)
         assert wait_until(lambda: b.received.version(1) == v, 10)
-        assert peer_stats(a, 2)["deltas_sent"] == 2  # v2 and v4
+        assert wait_until(lambda: peer_stats(a, 2)["deltas_sent"] == 2, 5)  # v2 and v4
+        assert peer_stats(a, 2)["delta_fallbacks"] == 1
     finally:
         a.stop()
         b.stop()
