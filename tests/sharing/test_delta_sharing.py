@@ -46,7 +46,7 @@ def growing_maps(versions: int, seed: int = 0):
     return out
 
 
-def exchange(deltas: bool, maps, port_holder=None) -> tuple[SharingService, SharingService]:
+def exchange(deltas: bool, maps) -> tuple[SharingService, SharingService]:
     """Vehicle 1 publishes every map, waiting each time until vehicle 2 holds it; both returned (running)."""
     b = real_service(2, deltas=deltas)
     a = real_service(1, peers=(f"127.0.0.2:{b.address[1]}",), deltas=deltas)
