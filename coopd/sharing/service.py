@@ -215,7 +215,7 @@ class SharingService:
             if self._own is not None and version < self._own[0]:
                 raise ValueError(f"version {version} is older than the published {self._own[0]}")
         bricks = None
-        if grid is not None and self.config.deltas:
+        if grid is not None and self.config.deltas and self.config.mtp:  # deltas travel over MTP only
             from .delta import BrickLedger
 
             bricks = self._bricks
