@@ -253,7 +253,8 @@ class BrickLedger:
         self._seq = 0
         self._bases: dict[int, int] = {}
         """version -> sequence number, for the last MAX_BASES versions recorded."""
-        self._latest: tuple[int, OccupancyGrid, MapMeta, str, bytes] | None = None
+        self._latest: tuple[int, OccupancyGrid, MapMeta, str, int] | None = None
+        """version, grid, meta, encoding and size of the full message of the latest map."""
         self._deltas: dict[int, bytes | None] = {}
         """base version -> delta to the latest (None: the full map is smaller), made when first asked."""
 
@@ -300,7 +301,7 @@ class BrickLedger:
             self._bases[version] = self._seq
             while len(self._bases) > MAX_BASES:
                 del self._bases[next(iter(self._bases))]
-            self._latest = (version, grid, meta, info.encoding, bytes(message))
+            self._latest = (version, grid, meta, info.encoding, len(message))
             self._deltas = {}
             return int(changed.sum() + gone.sum())
 
@@ -315,11 +316,11 @@ class BrickLedger:
             if base_version in self._deltas:
                 return self._deltas[base_version]
             base_seq = self._bases[base_version]
-            version, grid, meta, encoding, full = latest
+            version, grid, meta, encoding, full_size = latest
             lat_lo, lat_n = lattice_of(grid.offset, grid.shape, self.edge)
             _, seqs = self._window(lat_lo, lat_n)
             bricks = np.argwhere(seqs > base_seq) + lat_lo
-            budget = self.full_share * len(full)
+            budget = self.full_share * full_size
             delta = None
             if len(bricks) < seqs.size or self.full_share > 1:  # every brick changed: no need to try
                 message = encode_delta(grid, meta, base_version, bricks, self.edge, encoding, encoding)

@@ -222,7 +222,11 @@ class SharingService:
             if bricks is None or (bricks.latest_version or 0) > version:
                 bricks = BrickLedger(self.config.delta_brick_edge)
             if bricks.latest_version != version:  # the same version again: already recorded
-                bricks.record(grid, version, message)
+                try:
+                    bricks.record(grid, version, message)
+                except ValueError as e:  # a grid that is not the message's: full maps, never no map
+                    log.error("map v%d published without deltas: %s", version, e)
+                    bricks = None
         with self._update:
             self._own = (version, bytes(message))
             self._bricks = bricks

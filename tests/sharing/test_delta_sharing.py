@@ -202,3 +202,18 @@ def test_a_receiver_without_deltas_refuses_them():
         assert wait_until(lambda: failures(svc) == {"malformed": 1}, 5)
     finally:
         svc.stop()
+
+
+def test_a_grid_that_is_not_the_message_is_published_in_full():
+    """A caller's mistake (a grid that is not the message's) costs the deltas, never the map."""
+    maps = growing_maps(2, seed=4)
+    b = real_service(2)
+    a = real_service(1, peers=(f"127.0.0.2:{b.address[1]}",))
+    try:
+        a.publish(maps[0][2], 1, maps[1][0])
+        assert a.delta_bytes == 0
+        assert wait_until(lambda: b.received.version(1) == 1, 10)
+        assert bytes(b.received.get(1).data) == maps[0][2]
+    finally:
+        a.stop()
+        b.stop()
