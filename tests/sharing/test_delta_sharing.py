@@ -210,7 +210,7 @@ def test_a_grid_that_is_not_the_message_is_published_in_full():
     b = real_service(2)
     a = real_service(1, peers=(f"127.0.0.2:{b.address[1]}",))
     try:
-        a.publish(maps[0][2], 1, maps[1][0])
+        a.publish(maps[0][2], 1, OccupancyGrid.empty((3, 3, 3), 0.1))
         assert a.delta_bytes == 0
         assert wait_until(lambda: b.received.version(1) == 1, 10)
         assert bytes(b.received.get(1).data) == maps[0][2]
