@@ -95,12 +95,15 @@ def toml_value(v) -> str:
 
 
 def render_config(sections: dict) -> str:
-    """{section: {key: value}} as coopd.toml text."""
+    """{section: {key: value}} as coopd.toml text; a dict value is a sub-table ([section.key])."""
     out = []
     for name, table in sections.items():
         out.append(f"[{name}]")
-        out.extend(f"{k} = {toml_value(v)}" for k, v in table.items())
+        out.extend(f"{k} = {toml_value(v)}" for k, v in table.items() if not isinstance(v, dict))
         out.append("")
+        subtables = {f"{name}.{k}": v for k, v in table.items() if isinstance(v, dict)}
+        if subtables:
+            out.append(render_config(subtables))
     return "\n".join(out)
 
 

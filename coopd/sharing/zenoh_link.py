@@ -52,6 +52,7 @@ QUERY_TIMEOUT_S = 5.0
 INBOX_LEDGER = "sharing-zenoh-inbox"
 """The memory budget's entry for received publications waiting for the receive thread."""
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+MODES = ("peer", "router", "client")
 SWARM_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -65,7 +66,8 @@ class ZenohSettings:
 
     swarm: str = _doc("key expressions are coopd/<swarm>/...: swarms on one Zenoh network stay apart",
                       "swarm")
-    mode: str = _doc("'peer' (talks to other peers directly) or 'client' (through a zenohd router)", "peer")
+    mode: str = _doc("'peer': talk to the drones in reach; 'router': also route for the others, so maps "
+                     "cross drones that cannot reach each other; 'client': through a zenohd router", "peer")
     listen: tuple[str, ...] = _doc("endpoints to listen on, e.g. 'tcp/0.0.0.0:7447'; empty: Zenoh's "
                                    "default for the mode", ())
     connect: tuple[str, ...] = _doc("endpoints (peers or routers) to connect to, e.g. 'tcp/10.42.0.1:7447'",
@@ -76,8 +78,8 @@ class ZenohSettings:
     def __post_init__(self):
         if not SWARM_NAME.match(self.swarm):
             raise ValueError(f"swarm name {self.swarm!r}: 1..64 letters, digits, '-' or '_'")
-        if self.mode not in ("peer", "client"):
-            raise ValueError(f"mode {self.mode!r} is 'peer' or 'client'")
+        if self.mode not in MODES:
+            raise ValueError(f"mode {self.mode!r} is one of {', '.join(MODES)}")
         for e in (*self.listen, *self.connect):
             if not ENDPOINT.match(e):
                 raise ValueError(f"endpoint {e!r} is not PROTOCOL/ADDRESS (tcp/10.0.0.1:7447, "

@@ -13,7 +13,10 @@ shares or merges while the others still start. Until every daemon:
 Also per daemon: merges done/failed/deferred, merging-thread and process CPU, peak RSS. When the
 daemon's config has `[merging] distributed`, every size runs both ways (the peer comparison).
 Prints a table and writes out/bench/swarm.json.
-Usage: scripts/bench swarm [--drones 2,4,6,8,10] [--world small_house] [--seed 1] [--timeout 300]
+With --transport mtp,zenoh every size also runs with the maps shared over Zenoh (peers on loopback,
+multicast scouting off, each connecting to drone 1 and finding the others by gossip).
+Usage: scripts/bench swarm [--drones 2,4,6,8,10] [--transport mtp,zenoh] [--modes distributed]
+                           [--world small_house] [--seed 1] [--timeout 300]
 """
 
 import argparse
@@ -43,13 +46,14 @@ from coopd.daemon.service import save_map_frame  # noqa: E402
 from coopd.geometry import rotation_angle_deg  # noqa: E402
 from coopd.sharing.wire import MapMeta  # noqa: E402
 from firmware_sim import simset  # noqa: E402
+from firmware_sim.swarm import render_config  # noqa: E402
 
 THESIS = {"drones": 10, "t_share_s": 6.0, "t_merge_s": 340.0, "t_total_s": 350.0,
           "machine": "thesis §10.4, i7 (C++)"}
 GOAL_TOTAL_S = 60.0
 """Issue 7: 10 drones, everything shared and merged everywhere, on this 2-core machine."""
-SHARING_BASE, MAVLINK_BASE = 18000, 18500
-"""Ports of this bench: sharing 18001.., silent MAVLink udpin 18501.. (vehicle id added)."""
+SHARING_BASE, MAVLINK_BASE, ZENOH_BASE = 18000, 18500, 18200
+"""Ports of this bench: sharing 18001.., silent MAVLink udpin 18501.., Zenoh 18201.. (vehicle id added)."""
 HOST_BASE = 10
 """Vehicle i listens and sends from 127.0.0.(HOST_BASE + i): like drones, each its own address (a map
 server admits at most max_connections_per_address = 4 connections from one address; on one shared
@@ -134,25 +138,13 @@ def die_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
-def toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    return json.dumps(v)
-
-
-def toml(table: dict) -> str:
-    """A two-level dict as TOML (sections of scalar or list keys)."""
-    return "".join(f"[{s}]\n" + "".join(f"{k} = {toml_value(v)}\n" for k, v in keys.items()) + "\n"
-                   for s, keys in table.items())
-
-
 class Swarm:
     """N coopd processes on loopback, each resumed from one flight map; stop() kills what is left."""
 
-    def __init__(self, maps: list, merging: dict, workdir: Path, shared_address: bool = False):
+    def __init__(self, maps: list, merging: dict, workdir: Path, shared_address: bool = False,
+                 transport: str = "mtp"):
         self.maps = maps
+        self.transport = transport
         self.shared_address = shared_address
         self.ids = [i + 1 for i in range(len(maps))]
         self.workdir = workdir
@@ -182,11 +174,22 @@ class Swarm:
                 "sharing": {"listen_host": host(vid, self.shared_address), "port": SHARING_BASE + vid,
                             "peers": [f"{host(o, self.shared_address)}:{SHARING_BASE + o}"
                                       for o in self.ids if o != vid],
-                            "swarm_key_file": str(key_file)},
+                            "swarm_key_file": str(key_file), **self.zenoh_sharing(vid)},
                 "merging": self.merging,
                 "daemon": {"state_dir": str(d / "state"), "control_socket": self.sock(vid)},
             }
-            (d / "coopd.toml").write_text(toml({k: v for k, v in config.items() if v}))
+            (d / "coopd.toml").write_text(render_config({k: v for k, v in config.items() if v}))
+
+    def zenoh_sharing(self, vid: int) -> dict:
+        """The [sharing] keys of the Zenoh transport: each daemon listens on its own address and connects
+        to drone 1's; the others are found by gossip."""
+        if self.transport == "mtp":
+            return {}
+        first = f"tcp/{host(1, self.shared_address)}:{ZENOH_BASE + 1}"
+        return {"transport": self.transport,
+                "zenoh": {"swarm": "bench",
+                          "listen": [f"tcp/{host(vid, self.shared_address)}:{ZENOH_BASE + vid}"],
+                          "connect": [first] if vid != 1 else [], "multicast_scouting": False}}
 
     def start(self, timeout_s: float) -> float:
         """Start every daemon, freeze each once it runs; returns the seconds until all ran."""
@@ -256,14 +259,15 @@ class Swarm:
 
 
 # ------------------------------------------------------------------------------------ one run
-def run_size(maps: list, merging: dict, args, label: str) -> dict:
+def run_size(maps: list, merging: dict, args, label: str, transport: str = "mtp") -> dict:
     """Start N daemons, measure sharing and merging until converged or args.timeout; the row."""
     n = len(maps)
     truths = {a.vehicle + 1: {b.vehicle + 1: simset.truth_b_to_a(a, b) for b in maps if b is not a}
               for a in maps}
     workdir = Path(tempfile.mkdtemp(prefix="bsw", dir="/tmp"))
-    swarm = Swarm(maps, merging, workdir, args.shared_address)
-    row = {"drones": n, "mode": label, "merging_config": merging, "shared_address": args.shared_address}
+    swarm = Swarm(maps, merging, workdir, args.shared_address, transport)
+    row = {"drones": n, "mode": label, "transport": transport, "merging_config": merging,
+           "shared_address": args.shared_address}
     try:
         swarm.prepare()
         row["startup_s"] = round(swarm.start(args.start_timeout), 1)
@@ -329,6 +333,12 @@ def linger(swarm: Swarm, at_global: dict, cpu1: dict, seconds: float) -> dict:
     }
 
 
+def bytes_sent(sharing: dict) -> int:
+    """Bytes a daemon sent sharing: MTP transfers to every peer, and Zenoh publications and replies."""
+    return (sum(p.get("bytes_sent", 0) for p in sharing.get("peers", []))
+            + (sharing.get("zenoh") or {}).get("bytes_out", 0))
+
+
 def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, args, t_share, t_global,
               first_global) -> dict:
     """The figures of one run from the daemons' last statuses."""
@@ -354,6 +364,7 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
             "accepted": j["accepted"], "wrong": j["wrong"], "errors": j["errors"], "refused": j["refused"],
             "global_at_s": None if vid not in first_global else round(first_global[vid], 2),
             "peak_rss_mib": round(st["memory"]["peak_rss_bytes"] / 2**20, 1),
+            "bytes_sent": bytes_sent(st.get("sharing") or {}),
         })
     ok = [d for d in daemons if "merges" in d]
     reported = [d["merge_cpu_s_reported"] for d in ok]
@@ -373,6 +384,7 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
         "merging_thread_cpu_s": round(sum(d["merging_thread_cpu_s"] or 0.0 for d in ok), 2),
         "process_cpu_s": round(sum(d["process_cpu_s"] or 0.0 for d in ok), 2),
         "peak_rss_mib_max": max((d["peak_rss_mib"] for d in ok), default=None),
+        "bytes_sent_per_drone": round(sum(d["bytes_sent"] for d in ok) / max(1, len(ok))),
         "daemons": daemons,
     }
 
@@ -384,16 +396,17 @@ def _delta(a, b):
 # ----------------------------------------------------------------------------------- report
 def table(rows: list[dict]) -> str:
     """The printed table: one line per size and mode."""
-    head = ("N", "mode", "t_share", "t_global", "t_total", "merges", "accepted", "wrong", "merge thr CPU",
-            "proc CPU", "RSS max MiB", "CPU after")
+    head = ("N", "transport", "mode", "t_share", "t_global", "t_total", "merges", "accepted", "wrong",
+            "merge thr CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone")
     lines = ["  ".join(f"{h:>9}" for h in head)]
     for r in rows:
         t_global = f"gave up {r['gave_up_at_s']:.0f}" if r.get("gave_up_at_s") else _s(r.get("t_global_s"))
-        cells = (r["drones"], r["mode"], _s(r.get("t_share_s")), t_global,
+        cells = (r["drones"], r.get("transport", "mtp"), r["mode"], _s(r.get("t_share_s")), t_global,
                  _s(r.get("t_total_s")), r.get("merges_done"),
                  f"{r.get('accepted_offsets')}/{r.get('wanted_offsets')}", r.get("wrong_merges"),
                  _s(r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")), r.get("peak_rss_mib_max"),
-                 _s((r.get("after_global") or {}).get("merging_thread_cpu_s")))
+                 _s((r.get("after_global") or {}).get("merging_thread_cpu_s")),
+                 None if r.get("bytes_sent_per_drone") is None else round(r["bytes_sent_per_drone"] / 1000))
         lines.append("  ".join(f"{str(c):>9}" for c in cells))
     lines.append(f"thesis (§10.4, 10 drones): share {THESIS['t_share_s']} s, merge {THESIS['t_merge_s']} s, "
                  f"total {THESIS['t_total_s']} s; goal here: 10 drones <= {GOAL_TOTAL_S:.0f} s total")
@@ -408,7 +421,7 @@ def comparisons(rows: list[dict]) -> list[dict]:
     """Per size run both ways: distributed / whole-map ratios of merge CPU and t_global."""
     out = []
     for n in sorted({r["drones"] for r in rows}):
-        by = {r["mode"]: r for r in rows if r["drones"] == n}
+        by = {r["mode"]: r for r in rows if r["drones"] == n and r.get("transport", "mtp") == "mtp"}
         a, b = by.get("distributed"), by.get("central")
         if a is None or b is None:
             continue
@@ -449,6 +462,8 @@ def main():
     ap.add_argument("--shared-address", action="store_true",
                     help="every daemon on 127.0.0.1 (not one loopback address each)")
     ap.add_argument("--keep", action="store_true", help="keep the daemons' directories under /tmp")
+    ap.add_argument("--transport", default="mtp", help="mtp, zenoh, or both comma-separated (each runs)")
+    ap.add_argument("--modes", default="", help="central, distributed or both (default: what the build has)")
     ap.add_argument("--out", default=str(ROOT / "out" / "bench" / "swarm.json"))
     args = ap.parse_args()
     sizes = [int(s) for s in args.drones.split(",")]
@@ -461,14 +476,21 @@ def main():
     flight = simset.flight_maps(args.world, args.seed, k, cache_dir=ROOT / simset.CACHE_DIR)
     maps_s = time.monotonic() - t
     rows = []
+    transports = [t for t in args.transport.split(",") if t]
+    if not set(transports) <= {"mtp", "zenoh"}:
+        ap.error("--transport: mtp and/or zenoh")
+    wanted = set(filter(None, args.modes.split(",")))
     for n in sizes:
-        for label, merging in modes(extra):
-            try:
-                row = run_size(flight[:n], merging, args, label)
-            except RuntimeError as e:  # a size whose daemons did not start: said, the others still run
-                row = {"drones": n, "mode": label, "error": str(e)[-3000:]}
-            rows.append(row)
-            print(json.dumps({k: v for k, v in row.items() if k != "daemons"}), file=sys.stderr)
+        for transport in transports:
+            for label, merging in modes(extra):
+                if wanted and label not in wanted:
+                    continue
+                try:
+                    row = run_size(flight[:n], merging, args, label, transport)
+                except RuntimeError as e:  # a size whose daemons did not start: said, the others still run
+                    row = {"drones": n, "mode": label, "transport": transport, "error": str(e)[-3000:]}
+                rows.append(row)
+                print(json.dumps({k: v for k, v in row.items() if k != "daemons"}), file=sys.stderr)
     result = {
         "bench": "swarm",
         "conditions": {"world": args.world, "seed": args.seed, "maps": f"simset flight of {k} drones",

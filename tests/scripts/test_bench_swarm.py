@@ -65,11 +65,15 @@ def test_offset_errors_reads_the_status_transform_row_major():
     assert te > 1.0
 
 
-def test_toml_round_trips_a_daemon_config():
+def test_daemon_configs_round_trip_with_the_zenoh_table():
+    bench = swarm.Swarm([], {}, Path("/tmp"), transport="zenoh")
     table = {"vehicle": {"id": 3, "mavlink": "udpin:127.0.0.1:18503"},
-             "sharing": {"port": 18003, "peers": ["127.0.0.1:18001", "127.0.0.1:18002"]},
+             "sharing": {"port": 18003, "peers": ["127.0.0.1:18001", "127.0.0.1:18002"],
+                         **bench.zenoh_sharing(3)},
              "merging": {"distributed": True, "period_s": 10.0}}
-    assert tomllib.loads(swarm.toml(table)) == table
+    assert tomllib.loads(swarm.render_config(table)) == table
+    assert table["sharing"]["zenoh"]["connect"] == [f"tcp/127.0.0.11:{swarm.ZENOH_BASE + 1}"]
+    assert swarm.Swarm([], {}, Path("/tmp")).zenoh_sharing(3) == {}  # MTP: nothing added
 
 
 def test_comparisons_are_distributed_over_central():

@@ -14,6 +14,7 @@ import sharing_testmsg as tm
 
 from coopd.sharing.service import SharingConfig, SharingService
 from coopd.sharing.transport import TransportSettings
+from coopd.sharing.zenoh_link import ZenohSettings
 
 
 def real_map(vid: int, version: int, size: int) -> bytes:
@@ -48,6 +49,10 @@ def main() -> None:
     ap.add_argument("--max-inflight-mb", type=int, default=512)
     ap.add_argument("--real", action="store_true", help="real wire map messages (inspect + full decode)")
     ap.add_argument("--max-connections", type=int, default=32)
+    ap.add_argument("--zenoh-mode", default="", help="also share over Zenoh in this mode (peer, router)")
+    ap.add_argument("--zenoh-listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    ap.add_argument("--zenoh-connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    ap.add_argument("--no-mtp", action="store_true", help="Zenoh only")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s node{a.vid} %(name)s %(levelname)s %(message)s")
@@ -59,7 +64,10 @@ def main() -> None:
                                  max_connections_per_address=a.max_connections)
     cfg = SharingConfig(vehicle_id=a.vid, listen_host=a.host, port=a.port, peers=(a.peers,),
                         peer_ports=(a.port,), scan_period=0.3, grace_period=a.grace, relay=a.relay,
-                        transport=settings)
+                        transport=settings, mtp=not a.no_mtp,
+                        zenoh=None if not a.zenoh_mode else ZenohSettings(
+                            swarm="test", mode=a.zenoh_mode, listen=tuple(a.zenoh_listen),
+                            connect=tuple(a.zenoh_connect), multicast_scouting=False))
     if a.real:
         from coopd.sharing.service import wire_inspect, wire_verifier
 
@@ -67,7 +75,7 @@ def main() -> None:
                              verify=wire_verifier(settings.max_cells, settings.max_bytes)).start()
     else:
         svc = SharingService(cfg, inspect=tm.inspect).start()
-    print("ready", *svc.address, flush=True)
+    print("ready", *(svc.address or ("zenoh", 0)), flush=True)
     for line in sys.stdin:
         cmd = line.split()
         if not cmd:

@@ -54,14 +54,15 @@ def test_only_this_swarms_keys_are_parsed():
 
 
 def test_settings_are_checked():
-    for bad in (dict(swarm="a/b"), dict(swarm=""), dict(mode="router"), dict(listen=("0.0.0.0:7447",)),
+    for bad in (dict(swarm="a/b"), dict(swarm=""), dict(mode="linkstate"), dict(listen=("0.0.0.0:7447",)),
                 dict(connect=("tcp/",))):
         with pytest.raises(ValueError):
             ZenohSettings(**bad)
 
 
-def node(vid: int, listen_port: int, connect=(), key: bytes | None = KEY, swarm: str = "t") -> SharingService:
-    z = ZenohSettings(swarm=swarm, listen=(f"tcp/127.0.0.1:{listen_port}",),
+def node(vid: int, listen_port: int, connect=(), key: bytes | None = KEY, swarm: str = "t",
+         mode: str = "peer") -> SharingService:
+    z = ZenohSettings(swarm=swarm, mode=mode, listen=(f"tcp/127.0.0.1:{listen_port}",),
                       connect=tuple(f"tcp/127.0.0.1:{p}" for p in connect), multicast_scouting=False)
     cfg = SharingConfig(vehicle_id=vid, mtp=False, zenoh=z, transport=settings(swarm_key=key))
     return SharingService(cfg, inspect=tm.inspect).start()
@@ -136,3 +137,40 @@ def _raw_config(listen_port: int, connect_port: int):
     conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{connect_port}"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     return conf
+
+
+def test_routers_carry_a_map_along_a_line():
+    """A-B-C-D as routers, each connected to its neighbour only (multicast scouting off; routers do not
+    connect to routers they hear of): A's map and D's reach the other end through the routers between."""
+    ports = [free_port() for _ in range(4)]
+    line = []
+    try:
+        for i in range(4):
+            line.append(node(i + 1, ports[i], connect=[ports[i - 1]] if i else [], mode="router"))
+        a, d = line[0], line[3]
+        a.publish(tm.make(1, 3, b"from A"), 3)
+        d.publish(tm.make(4, 5, b"from D"), 5)
+        assert wait_until(lambda: d.received.version(1) == 3 and a.received.version(4) == 5, 15), \
+            [s.stats()["zenoh"] for s in line]
+        assert [s.received.version(1) for s in line[1:]] == [3, 3, 3]
+        assert len(a.stats()["zenoh"]["peers"]) == 0  # A's only session is with router B
+    finally:
+        for s in line:
+            s.stop()
+
+
+def test_peers_told_of_others_connect_to_them():
+    """As peers, connected in a line, they learn of the others by gossip and connect directly: A's
+    map reaches D in one hop (where every host is in reach of every other, as on loopback)."""
+    ports = [free_port() for _ in range(4)]
+    line = []
+    try:
+        for i in range(4):
+            line.append(node(i + 1, ports[i], connect=[ports[i - 1]] if i else []))
+        a, d = line[0], line[3]
+        assert wait_until(lambda: len(a.stats()["zenoh"]["peers"]) == 3, 15), a.stats()["zenoh"]
+        a.publish(tm.make(1, 3, b"from A"), 3)
+        assert wait_until(lambda: d.received.version(1) == 3, 15)
+    finally:
+        for s in line:
+            s.stop()
