@@ -88,12 +88,13 @@ def start_lap_missions(sim, laps: int) -> None:
 
 def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s: float = 0.0,
         pose_delay_s: float = 0.0, max_flight_s: float = 900.0, noisy_poses: bool = True,
-        config: MapperConfig | None = None) -> list[FlightMap]:
+        config: MapperConfig | None = None, each_second=None) -> list[FlightMap]:
     """Fly every drone's built-in route `laps` times in-process and return each drone's local map.
 
     ground_s: seconds the drones sit on the ground, mapping and drifting, before they take off (as
     when the daemons start well before the mission). pose_delay_s: each frame is mapped at the pose
-    of that much earlier (camera and odometry clocks out of step)."""
+    of that much earlier (camera and odometry clocks out of step). each_second(sim_time, mappers), if
+    given, is called after every simulated second of flight (e.g. to record the maps as they grow)."""
     from firmware_sim.simulation import Simulation
     from firmware_sim.worlds import build_world
 
@@ -117,6 +118,8 @@ def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s
     start_lap_missions(sim, laps)
     while sim.time < max_flight_s + ground_s and not all(sim.route_finished(i) for i in range(n_vehicles)):
         sim.step(1.0)
+        if each_second is not None:
+            each_second(sim.time, mappers)
     out = []
     for i, m in enumerate(mappers):
         odo = sim.vehicle(i).odometry

@@ -226,6 +226,9 @@ class SharingConfig:
     max_map_bytes: int = _key("largest received map message", 64 << 20, _between(1024, 1 << 30, " B"))
     max_map_cells: int = _key("largest received map, in cells", 100_000_000, _between(1, 400_000_000))
     relay: bool = _key("also forward maps received from others (multi-hop)", False)
+    deltas: bool = _key(
+        "send our map to peers that read deltas as the bricks changed since the version they hold", True
+    )
     max_clock_skew_s: float = _key(
         "a received map version whose epoch is further ahead of our clock is refused", 300.0,
         _between(1.0, 1e9, " s")

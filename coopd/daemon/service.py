@@ -236,6 +236,7 @@ def sharing_config(config: Config, budget: MemoryBudget) -> ServiceSharingConfig
         scan_period=s.scan_period_s,
         grace_period=s.grace_period_s,
         relay=s.relay,
+        deltas=s.deltas,
         max_received_bytes=max(budget.grid_budget // 4, 1),
         allowed_vehicles=frozenset(s.allowed_vehicles),
         max_epoch_ahead_s=s.max_clock_skew_s,
@@ -344,6 +345,8 @@ class Daemon:
         self.stop_reason = ""
         self._threads: list[threading.Thread] = []
         self._local_message: tuple[int, bytes] | None = None
+        self._local_grid: OccupancyGrid | None = None
+        """The snapshot _local_message encodes (kept for the sharing delta ledger, never changed)."""
         self._message_lock = threading.Lock()
         self._published_version = 0
         self._saved_versions: dict[str, int] = {"local": self.mapper.version}  # a resumed map is on disk
@@ -675,11 +678,11 @@ class Daemon:
                     self._publish_local()
 
     def _publish_local(self) -> None:
-        v, message = self.local_message()
+        v, message, grid = self._local_map()  # the grid too: the sharing delta ledger hashes it
         self.versions.ensure(v)
         wire_version = map_versions.compose(self.epoch, v)
         try:
-            self.sharing.publish(with_version(message, wire_version), wire_version)
+            self.sharing.publish(with_version(message, wire_version), wire_version, grid)
             self._published_version = v
         except ValueError as e:
             log.error("publishing local map v%d refused: %s", wire_version, e)
@@ -758,14 +761,19 @@ class Daemon:
 
     def local_message(self) -> tuple[int, bytes]:
         """(version, encoded local map), encoded again only when the map changed."""
+        version, message, _ = self._local_map()
+        return version, message
+
+    def _local_map(self) -> tuple[int, bytes, OccupancyGrid]:
+        """(version, encoded local map, the snapshot it encodes), made again only when the map changed."""
         with self._message_lock:
             cached = self._local_message
-            if cached is not None and cached[0] == self.mapper.version:
-                return cached
-            grid, version = self.known_snapshot()
-            message = encode_map(grid, MapMeta(self.vehicle_id, version, time.time()))
-            self._local_message = (version, message)
-            return self._local_message
+            if cached is None or cached[0] != self.mapper.version:
+                grid, version = self.known_snapshot()
+                message = encode_map(grid, MapMeta(self.vehicle_id, version, time.time()))
+                self._local_message = (version, message)
+                self._local_grid = grid
+            return (*self._local_message, self._local_grid)
 
     # -------------------------------------------------------------------- persistence, memory
     def checkpoint(self) -> None:
@@ -792,6 +800,8 @@ class Daemon:
         """Every grid in the ledger: local (cells), received (compressed bytes); RSS against the budget."""
         self.rss_watch.check(self.budget.rss())
         self.budget.reserve("local", self.mapper.grid.size)
+        if self.sharing is not None:
+            self.budget.reserve("sharing-deltas", self.sharing.delta_bytes)
         held = set()
         for m in self._received_maps():
             held.add(f"received:{m.vehicle_id}")

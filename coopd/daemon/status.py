@@ -147,6 +147,8 @@ def peers(daemon) -> list[dict]:
                 "last_seen_s": p["last_seen_ago_s"],
                 "maps_sent": p["maps_sent"],
                 "maps_received": p["maps_received"],
+                "deltas_sent": p["deltas_sent"],
+                "wire_bytes_sent": p["wire_bytes_sent"],
                 "failures": p["failures"],
                 "offset": daemon.merger.offsets.get(vid),
             }

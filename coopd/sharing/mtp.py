@@ -43,13 +43,18 @@ HELLO_TAG = struct.Struct("<16s")
 PROOF_TAG = struct.Struct("<16s")
 """after HEAD (whose count is the sender's vehicle id): the proof tag (swarmkey.proof_tag)."""
 HELLO_FLAG_KEY = 0x01
+HELLO_FLAG_DELTAS = 0x02
+"""The hello's sender reads map deltas (wire type 4, coopd.sharing.delta); older coopds leave it 0 and
+ignore it, so they are sent full maps only."""
 TAG_HMAC_SHA256 = 0x01
 """Stop frame byte 6: a 32-byte HMAC-SHA256 tag follows in bytes 7-38."""
 TAG_SIZE = 32
-ACK_OK, ACK_STALE, ACK_REJECTED, ACK_VERSION = 0, 1, 2, 3
+ACK_OK, ACK_STALE, ACK_REJECTED, ACK_VERSION, ACK_DELTA_BASE = 0, 1, 2, 3, 4
 """Ack status (byte 6 of an ack): stored; not newer than what the receiver holds; refused; refused
-because its version is implausible (coopd.sharing.versions: the sender should start a new epoch).
-Senders older than protocol 3 read any status but 0 and 1 as refused."""
+because its version is implausible (coopd.sharing.versions: the sender should start a new epoch);
+a delta refused because the receiver does not hold the map it applies to (send the full map).
+Senders older than protocol 3 read any status but 0 and 1 as refused; only senders that send deltas
+get status 4."""
 RESERVE_STEP = 256 * 1024
 """A transfer's buffer is charged to the in-flight budget in steps of this many bytes, each step
 before data may land in it: what a transfer holds is what it sent, rounded up to one step."""
@@ -75,6 +80,8 @@ class Hello:
     version: int = PROTOCOL_VERSION
     tag: bytes | None = None
     """A keyed server's proof that it holds the swarm key (the sender's hello carries none)."""
+    deltas: bool = False
+    """The sender of this hello reads map deltas (HELLO_FLAG_DELTAS)."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +142,7 @@ def stop_frame(blocks: int, block_size: int, tag: bytes | None = None) -> bytes:
 
 def hello_frame(hello: Hello) -> bytes:
     """The hello frame; its count field is the sender's block size so a mismatch shows at once."""
-    flags = HELLO_FLAG_KEY if hello.keyed else 0
+    flags = (HELLO_FLAG_KEY if hello.keyed else 0) | (HELLO_FLAG_DELTAS if hello.deltas else 0)
     body = HELLO_BODY.pack(hello.version, flags, hello.vehicle_id, hello.nonce, hello.instance)
     if hello.tag is not None:
         if len(hello.tag) != HELLO_TAG.size:
@@ -188,7 +195,7 @@ def parse_hello(frame) -> Hello:
         raise MtpError("frame", f"hello protocol version {version} does not exist")
     (tag,) = HELLO_TAG.unpack_from(frame, HEAD.size + HELLO_BODY.size)
     return Hello(block_size, vehicle_id, bytes(nonce), bool(flags & HELLO_FLAG_KEY), instance, version,
-                 None if _all_zero(tag) else bytes(tag))
+                 None if _all_zero(tag) else bytes(tag), bool(flags & HELLO_FLAG_DELTAS))
 
 
 def parse_ack(frame) -> tuple[int, int]:

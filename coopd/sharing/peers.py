@@ -25,7 +25,10 @@ class MessageSummary:
     """Bytes of the whole message (where it ends inside the zero-padded data blocks)."""
     cells: int
     kind: str = "map"
-    """"map" (types 0/1) or "result" (type 2, merge results): versions are tracked per kind."""
+    """"map" (types 0/1), "delta" (type 4: a map as the changes since base_version) or "result" (type 2,
+    merge results): versions are tracked per kind, a delta's as a map's."""
+    base_version: int = 0
+    """A delta's: the version of the map it applies to."""
 
 
 @dataclass
@@ -56,6 +59,13 @@ class PeerStats:
     """origin vehicle id -> newest merge-result version this peer is known to hold."""
     results_sent: int = 0
     results_received: int = 0
+    deltas_sent: int = 0
+    """Maps sent as deltas (counted in maps_sent too)."""
+    deltas_received: int = 0
+    delta_fallbacks: int = 0
+    """Deltas the peer refused because it did not hold their base: the full map was sent instead."""
+    wire_bytes_sent: int = 0
+    """Every MTP frame and data block we sent the peer (hello, proof, offers, transfers)."""
 
     def snapshot(self, now: float) -> dict:
         return {
@@ -69,6 +79,8 @@ class PeerStats:
             "failures": dict(self.failures), "has_versions": dict(self.has),
             "results_sent": self.results_sent, "results_received": self.results_received,
             "has_result_versions": dict(self.has_results),
+            "deltas_sent": self.deltas_sent, "deltas_received": self.deltas_received,
+            "delta_fallbacks": self.delta_fallbacks, "wire_bytes_sent": self.wire_bytes_sent,
         }
 
 
@@ -122,13 +134,14 @@ class PeerTable:
 
     def sent(self, vehicle_id: int, origin: int, version: int, nbytes: int, seconds: float,
              kind: str = "map") -> None:
-        """A message (map or merge result) of `origin` at `version` was delivered and acknowledged."""
+        """A message (map, delta or merge result) of `origin` at `version` was delivered and acknowledged."""
         with self._lock:
             peer = self._get(vehicle_id)
             if kind == "result":
                 peer.results_sent += 1
             else:
                 peer.maps_sent += 1
+                peer.deltas_sent += kind == "delta"
             peer.bytes_sent += nbytes
             peer.last_transfer_s = seconds
             peer.last_throughput_bps = nbytes / seconds if seconds > 0 else 0.0
@@ -144,6 +157,7 @@ class PeerTable:
                 peer.results_received += 1
             else:
                 peer.maps_received += 1
+                peer.deltas_received += kind == "delta"
             peer.bytes_received += nbytes
             peer.last_transfer_s = seconds
             peer.last_throughput_bps = nbytes / seconds if seconds > 0 else 0.0
@@ -159,6 +173,15 @@ class PeerTable:
             peer = self._get(vehicle_id)
             peer.redundant_sent += int(redundant)
             self._note_has(peer, origin, version, kind)
+
+    def delta_fallback(self, vehicle_id: int) -> None:
+        with self._lock:
+            self._get(vehicle_id).delta_fallbacks += 1
+
+    def wire_sent(self, vehicle_id: int, nbytes: int) -> None:
+        """Count bytes of frames and data blocks sent to the peer."""
+        with self._lock:
+            self._get(vehicle_id).wire_bytes_sent += nbytes
 
     def offer_declined(self, vehicle_id: int) -> None:
         with self._lock:

@@ -23,6 +23,7 @@ from coopd.net import host_port
 from . import discovery, mtp, versions
 from .peers import VEHICLE_IDS, MessageSummary, PeerTable, ReceivedStore, ResultStore, StoreFull
 from .transport import Arrival, MapServer, PeerLink, Rejected, TransportSettings
+from .wire_options import DEFAULT_BRICK_EDGE, MSG_MAP_DELTA
 from .zenoh_link import ZenohLink, ZenohSettings
 
 log = logging.getLogger("coopd.sharing")
@@ -62,6 +63,11 @@ class SharingConfig:
     max_epoch_ahead_s: float = versions.MAX_EPOCH_AHEAD_S
     """A received version whose epoch (or a merge result whose µs version) is further in the future
     than this is refused (clock skew allowed between vehicles)."""
+    deltas: bool = True
+    """Send our map to peers that read deltas as the bricks changed since the version they hold, and
+    read peers' deltas (docs/sharing.md, "Deltas"); False: full maps only, both ways."""
+    delta_brick_edge: int = DEFAULT_BRICK_EDGE
+    """Cells per brick edge of the deltas we send (4, 8, 16, 32 or 64)."""
     transport: TransportSettings = field(default_factory=TransportSettings)
     mtp: bool = True
     """Serve and scan over MTP (TCP)."""
@@ -86,6 +92,12 @@ def wire_inspect(data) -> MessageSummary:
     if len(data) and data[0] == wire.MSG_MERGE_RESULT:
         vid, version, size = wire.peek_merge_result(data)
         return MessageSummary(vid, version, size, 0, "result")
+    if len(data) and data[0] == MSG_MAP_DELTA:
+        from . import delta
+
+        info = delta.peek_delta(data)
+        return MessageSummary(info.vehicle_id, info.map_version, info.total_size, info.cells, "delta",
+                              info.base_version)
     info = wire.peek(data)
     return MessageSummary(info.vehicle_id, info.map_version, info.total_size, info.cells)
 
@@ -135,11 +147,16 @@ class SharingService:
         """(vehicle id, version) of every stored map, for consumers that poll; oldest dropped if full."""
         self._targets = discovery.parse_targets(config.peers, config.peer_ports)
         self._server = MapServer(config.transport, config.vehicle_id, self._accept, self.peers,
-                                 config.listen_host, config.port, self._wants, ledger=budget)
+                                 config.listen_host, config.port, self._wants, ledger=budget,
+                                 deltas=config.deltas)
         self.zenoh = None if config.zenoh is None else ZenohLink(
             config.zenoh, config.vehicle_id, config.transport.swarm_key, inspect, self._accept,
             self.peers.failure, config.transport.max_bytes, ledger=budget)
         self._own: tuple[int, bytes] | None = None
+        self._bricks = None
+        """The BrickLedger of our published maps (coopd.sharing.delta), once one came with its grid."""
+        self._delta_refused_by: set[int] = set()
+        """Peers that refused a delta although their hello said they read them: sent full maps only."""
         self._own_result: tuple[int, bytes] | None = None
         self._update = threading.Condition()
         self._stop = threading.Event()
@@ -188,17 +205,47 @@ class SharingService:
             self.zenoh.stop()
 
     # ------------------------------------------------------------------ publishing
-    def publish(self, message: bytes, version: int) -> None:
-        """Offer our latest map; peers get it if `version` is newer than what they have."""
+    def publish(self, message: bytes, version: int, grid=None) -> None:
+        """Offer our latest map; peers get it if `version` is newer than what they have. With `grid` (the
+        OccupancyGrid `message` carries, not changed afterwards) and deltas on, peers that read deltas
+        get the bricks changed since the version they hold; without, full maps only."""
         if version < 1:
             raise ValueError(f"published versions start at 1, got {version}")
         with self._update:
             if self._own is not None and version < self._own[0]:
                 raise ValueError(f"version {version} is older than the published {self._own[0]}")
+        bricks = None
+        if grid is not None and self.config.deltas and self.config.mtp:  # deltas travel over MTP only
+            from .delta import BrickLedger
+
+            bricks = self._bricks
+            if bricks is None or (bricks.latest_version or 0) > version:
+                bricks = BrickLedger(self.config.delta_brick_edge)
+            if bricks.latest_version != version:  # the same version again: already recorded
+                try:
+                    bricks.record(grid, version, message)
+                except ValueError as e:  # a grid that is not the message's: full maps, never no map
+                    log.error("map v%d published without deltas: %s", version, e)
+                    bricks = None
+        with self._update:
             self._own = (version, bytes(message))
+            self._bricks = bricks
             self._update.notify_all()
         if self.zenoh is not None:
             self.zenoh.publish("map", self._own[1])
+
+    @property
+    def delta_bytes(self) -> int:
+        """Memory the delta ledger holds: our latest map and its bricks' hashes (for the memory budget)."""
+        bricks = self._bricks
+        return 0 if bricks is None else bricks.held_bytes
+
+    def own_delta(self, peer_vid: int, version: int) -> bytes | None:
+        """Our map at `version` as a delta from the version `peer_vid` is known to hold, or None (full)."""
+        bricks = self._bricks
+        if bricks is None or bricks.latest_version != version:
+            return None
+        return bricks.delta_for(self.peers.has_version(peer_vid, self.vehicle_id))
 
     def publish_result(self, message: bytes, version: int) -> None:
         """Offer our latest merge-result message (wire type 2); peers get it if `version` is newer."""
@@ -290,7 +337,9 @@ class SharingService:
             self._forgive(arrival.address)
         if summary.kind == "result":
             return self._accept_result(arrival, summary, via)
-        nbytes = summary.size
+        if summary.kind == "delta" and not self.config.deltas:
+            raise Rejected("malformed", "a map delta, but this vehicle reads full maps only (sharing.deltas)")
+        nbytes, kind = summary.size, summary.kind  # a delta's own size: what travelled
         if summary.vehicle_id == self.vehicle_id:
             self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
                                 arrival.address)
@@ -306,19 +355,22 @@ class SharingService:
             return mtp.ACK_STALE
         del data
         message = arrival.take(summary.size)
-        if self._verify is not None:
+        if summary.kind == "delta":
+            message, summary = self._apply_delta(message, summary)
+        elif self._verify is not None:
             self._verify_within_budget(message, summary)
         try:
             stored = self.received.offer(summary, message, via)
         except StoreFull as e:
             raise Rejected("store_full", str(e)) from None
         self.peers.received(via, summary.vehicle_id, summary.version, nbytes, arrival.seconds,
-                            arrival.address)
+                            arrival.address, kind)
         if not stored:
             return mtp.ACK_STALE
         rate = nbytes / arrival.seconds / 1e6 if arrival.seconds > 0 else float("inf")
-        log.info("map of vehicle %d v%d received via %s (%d bytes, %.3f s, %.1f MB/s)",
-                 summary.vehicle_id, summary.version, via, nbytes, arrival.seconds, rate)
+        log.info("map of vehicle %d v%d received via %s (%d bytes%s, %.3f s, %.1f MB/s)",
+                 summary.vehicle_id, summary.version, via, nbytes,
+                 f" as a delta, {summary.size} as a map" if kind == "delta" else "", arrival.seconds, rate)
         try:
             self.arrivals.put_nowait((summary.vehicle_id, summary.version))
         except queue.Full:
@@ -332,6 +384,42 @@ class SharingService:
             with self._update:
                 self._update.notify_all()
         return mtp.ACK_OK
+
+    def _apply_delta(self, data: bytes, summary: MessageSummary) -> tuple[bytes, MessageSummary]:
+        """The full map message a delta makes of the map held for its vehicle, and its summary: rebuilt
+        from the held map and checked (the CRC of its cells), one at a time like a decode, its memory
+        charged to the budget. Rejected("delta_base") when the held map is not the delta's base."""
+        from . import delta, wire
+
+        vid = summary.vehicle_id
+        held = self.received.get(vid)
+        if held is None or held.version != summary.base_version:
+            holding = "no map" if held is None else f"v{held.version}"
+            raise Rejected("delta_base", f"delta of vehicle {vid} v{summary.base_version} -> "
+                                         f"v{summary.version}: holding {holding}")
+        s = self.config.transport
+        limits = wire.DecodeLimits(max_cells=s.max_cells, max_bytes=s.max_bytes)
+        try:
+            base_cells = wire.peek(held.data).cells
+        except ValueError as e:
+            raise Rejected("delta_base", f"the held map of vehicle {vid} does not read: {e}") from None
+        need = DECODE_BYTES_PER_CELL * (base_cells + summary.cells)
+        with self._decoding:
+            if self._budget is not None and not self._budget.add(DECODE_LEDGER, need):
+                raise Rejected("memory", f"applying the delta of vehicle {vid} needs {need >> 20} MiB, more "
+                                         f"than the memory budget has free")
+            try:
+                base, base_meta = wire.decode_map(held.data, limits)
+                grid, meta = delta.apply_delta(base, base_meta, data, limits)
+                message = wire.encode_map(grid, meta, delta.peek_delta(data).map_encoding)
+            except delta.DeltaBaseError as e:
+                raise Rejected("delta_base", f"delta of vehicle {vid}: {e}") from None
+            except (ValueError, MemoryError) as e:
+                raise Rejected("decode", f"delta of vehicle {vid}: {e}") from None
+            finally:
+                if self._budget is not None:
+                    self._budget.add(DECODE_LEDGER, -need)
+        return message, MessageSummary(vid, summary.version, len(message), grid.size)
 
     def _verify_within_budget(self, message, summary: MessageSummary) -> None:
         """Decode a received map once (verify), one at a time, its memory charged to the budget."""
@@ -403,7 +491,8 @@ class SharingService:
         found = 0
         source = None if self.config.listen_host in ("", "0.0.0.0", "::") else self.config.listen_host
         for target, sock in discovery.probe(todo, self.config.transport.connect_timeout, source):
-            link = PeerLink(sock, self.config.transport, self.vehicle_id, target[0], self._server.instance)
+            link = PeerLink(sock, self.config.transport, self.vehicle_id, target[0], self._server.instance,
+                            deltas=self.config.deltas)
             sender = _Sender(self, link, target)
             with self._lock:
                 if self._stop.is_set():
@@ -494,6 +583,9 @@ class _Sender:
     def __init__(self, service: SharingService, link: PeerLink, target):
         self.service, self.link, self.target = service, link, target
         self.vid: int | None = None
+        self.deltas = False
+        """The peer reads map deltas (its hello says so, and it has not refused one)."""
+        self._wire_counted = 0
         self.thread = threading.Thread(target=self.run, name=f"coopd-share-send-{target[0]}", daemon=True)
 
     def run(self) -> None:
@@ -526,8 +618,10 @@ class _Sender:
             svc._mark_alias(self.target, self.vid)  # the vehicle is already served at another address
             self.vid = None
             return
-        svc.peers.hello(self.vid, hello.instance)
+        if svc.peers.hello(self.vid, hello.instance):
+            svc._delta_refused_by.discard(self.vid)
         svc.peers.seen(self.vid, *self.target, connected=True)
+        self.deltas = hello.deltas and svc.config.deltas and self.vid not in svc._delta_refused_by
         log.info("peer vehicle %d found at %s", self.vid, host_port(*self.target))
         while not svc._stop.is_set():
             for origin, version, message, kind in svc.pending_for(self.vid):
@@ -537,11 +631,11 @@ class _Sender:
                     svc.peers.peer_has(self.vid, origin, version)  # relay declined: it has it already
                     svc.peers.offer_declined(self.vid)
                     continue
-                status, seconds = self.link.send_map(message)
+                message, kind, status, seconds = self._send(origin, version, message, kind)
                 if status == mtp.ACK_OK:
                     svc.peers.sent(self.vid, origin, version, len(message), seconds, kind)
                     log.info("%s of vehicle %d v%d sent to vehicle %d (%d bytes, %.3f s)",
-                             "merge result" if kind == "result" else "map",
+                             {"result": "merge result", "delta": "map delta"}.get(kind, "map"),
                              origin, version, self.vid, len(message), seconds)
                 else:
                     svc.peers.peer_has(self.vid, origin, version, redundant=status == mtp.ACK_STALE,
@@ -549,9 +643,11 @@ class _Sender:
                     if status != mtp.ACK_STALE:
                         svc.peers.failure("version_refused" if status == mtp.ACK_VERSION else
                                           "rejected_by_peer", self.vid)
-                    own_map = origin == svc.vehicle_id and kind == "map"
+                    own_map = origin == svc.vehicle_id and kind in ("map", "delta")
                     if own_map and status in (mtp.ACK_STALE, mtp.ACK_VERSION):
                         svc._own_refused(self.vid, version, status)
+            svc.peers.wire_sent(self.vid, self.link.wire_bytes_sent - self._wire_counted)
+            self._wire_counted = self.link.wire_bytes_sent
             with svc._update:
                 if not svc.pending_for(self.vid) and not svc._stop.is_set():
                     svc._update.wait(0.5)
@@ -559,3 +655,23 @@ class _Sender:
                 log.info("peer vehicle %d closed the connection", self.vid)
                 return
             svc.peers.seen(self.vid)
+
+    def _send(self, origin: int, version: int, message: bytes, kind: str) -> tuple[bytes, str, int, float]:
+        """Send one pending message; our own map as a delta when the peer reads them and the ledger has
+        one from the version it holds, and in full at once if the peer refuses the delta. Returns (what
+        was sent last, its kind, ack status, seconds)."""
+        svc = self.service
+        if kind == "map" and origin == svc.vehicle_id and self.deltas:
+            data = svc.own_delta(self.vid, version)
+            if data is not None:
+                status, seconds = self.link.send_map(data)
+                if status not in (mtp.ACK_DELTA_BASE, mtp.ACK_REJECTED):
+                    return data, "delta", status, seconds
+                svc.peers.delta_fallback(self.vid)
+                if status == mtp.ACK_REJECTED:  # it cannot read them after all: full maps until it restarts
+                    self.deltas = False
+                    svc._delta_refused_by.add(self.vid)
+                log.info("vehicle %d %s our map delta v%d: sending the full map", self.vid,
+                         "refused" if status == mtp.ACK_REJECTED else "does not hold the base of", version)
+        status, seconds = self.link.send_map(message)
+        return message, kind, status, seconds

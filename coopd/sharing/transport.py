@@ -117,6 +117,13 @@ class TransportSettings:
         return self.transfer_base_s + nbytes / self.min_rate
 
 
+REFUSAL_ACKS = {"version": mtp.ACK_VERSION, "delta_base": mtp.ACK_DELTA_BASE}
+"""Refusal causes the sender is told apart from a plain refusal (ACK_REJECTED), by ack status."""
+ROUTINE_REFUSALS = frozenset({"delta_base"})
+"""Refusals that are part of the protocol, not a fault of the peer: counted, logged at info level, and
+the connection stays open for what the sender sends next (a delta's base not held: the full map)."""
+
+
 class Rejected(Exception):
     """A complete transfer whose content is refused; `cause` is the stats key."""
 
@@ -180,8 +187,10 @@ class MapServer:
 
     def __init__(self, settings: TransportSettings, vehicle_id: int, accept: Callable[[Arrival], int],
                  peers: PeerTable, host: str = "0.0.0.0", port: int = 0,
-                 wants: Callable[[int, int], int] | None = None, ledger=None):
+                 wants: Callable[[int, int], int] | None = None, ledger=None, deltas: bool = False):
+        """deltas: the accept callback reads map deltas (wire type 4): say so in our hello replies."""
         self.settings = settings
+        self.deltas = deltas
         self.vehicle_id = vehicle_id
         self._accept = accept
         self._wants = wants or (lambda origin, version: mtp.ACK_OK)
@@ -489,7 +498,8 @@ class _Connection:
         if keyed:  # prove we hold the key: the sender trusts our vehicle id only then
             tag = swarmkey.hello_tag(s.swarm_key, hello.nonce, self.nonce, self.server.vehicle_id,
                                      self.server.instance, s.block_size, mtp.PROTOCOL_VERSION)
-        reply = Hello(s.block_size, self.server.vehicle_id, self.nonce, keyed, self.server.instance, tag=tag)
+        reply = Hello(s.block_size, self.server.vehicle_id, self.nonce, keyed, self.server.instance, tag=tag,
+                      deltas=self.server.deltas)
         self._send(mtp.hello_frame(reply))
         if hello.keyed != keyed:
             raise Rejected("auth", f"swarm key mismatch: peer key {'on' if hello.keyed else 'off'}, "
@@ -524,8 +534,15 @@ class _Connection:
             status = self._check_and_accept(t, seconds)
         except Rejected as e:
             self.server._budget.release(t.reserved)
-            self._ack(t.blocks, mtp.ACK_VERSION if e.cause == "version" else mtp.ACK_REJECTED)
-            raise
+            routine = e.cause in ROUTINE_REFUSALS and self.hello is not None
+            if routine:  # counted before the ack, like any refusal, but the connection stays
+                self.server.peers.failure(e.cause, self.vehicle_id, self.address)
+                log.info("transfer from %s (vehicle %s) refused: %s: %s", self.address, self.vehicle_id,
+                         e.cause, e)
+            self._ack(t.blocks, REFUSAL_ACKS.get(e.cause, mtp.ACK_REJECTED))
+            if not routine:
+                raise
+            return
         self.server._budget.release(t.reserved)
         self._ack(t.blocks, status)
 
@@ -560,8 +577,12 @@ class PeerLink:
     """Our side of a connection to a peer's map server: hello exchange, then transfers with acks."""
 
     def __init__(self, sock: socket.socket, settings: TransportSettings, vehicle_id: int, address: str = "",
-                 instance: int = 0):
+                 instance: int = 0, deltas: bool = False):
         self.instance = instance
+        self.deltas = deltas
+        """Our hello says we read map deltas (what our server accepts)."""
+        self.wire_bytes_sent = 0
+        """Bytes of every frame and data block this link sent (TCP/IP headers not counted)."""
         self.sock = sock
         self.s = settings
         self.vehicle_id = vehicle_id
@@ -592,7 +613,8 @@ class PeerLink:
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         _keepalive(self.sock)
         self.sock.sendall(mtp.hello_frame(Hello(s.block_size, self.vehicle_id, self.nonce,
-                                                s.swarm_key is not None, self.instance)))
+                                                s.swarm_key is not None, self.instance, deltas=self.deltas)))
+        self.wire_bytes_sent += s.block_size
         head = self._recv_exact(mtp.HEAD.size, s.handshake_timeout)
         marker, kind, bs = mtp.HEAD.unpack(head)
         if marker != mtp.MARK or kind != mtp.HELLO:
@@ -616,6 +638,7 @@ class PeerLink:
                 tag = swarmkey.proof_tag(s.swarm_key, peer.nonce, self.nonce, self.vehicle_id, self.instance,
                                          bs)
                 self.sock.sendall(mtp.proof_frame(self.vehicle_id, tag, bs))
+                self.wire_bytes_sent += bs
                 self.cipher = swarmkey.transfer_cipher(s.swarm_key, peer.nonce, self.nonce)
         self.peer = peer  # set only once the handshake succeeded
         return peer
@@ -649,6 +672,7 @@ class PeerLink:
                     if ahead > 0:
                         time.sleep(ahead)
         self.sock.sendall(mtp.stop_frame(blocks, bs, tag))
+        self.wire_bytes_sent += (blocks + 2) * bs
         ack = self._recv_exact(bs, s.transfer_deadline(blocks * bs))
         got, status = mtp.parse_ack(ack)
         if got != blocks:
@@ -659,6 +683,7 @@ class PeerLink:
         """Ask whether the peer needs `origin`'s map at `version` (ACK_OK) or holds it (ACK_STALE)."""
         self.sock.settimeout(self.s.read_timeout)
         self.sock.sendall(mtp.offer_frame(origin, version, self.s.block_size))
+        self.wire_bytes_sent += self.s.block_size
         blocks, status = mtp.parse_ack(self._recv_exact(self.s.block_size, self.s.read_timeout))
         if blocks != 0:
             raise MtpError("count", f"peer answered an offer with an ack for {blocks} blocks")

@@ -27,6 +27,7 @@ from .wire_options import (  # defined there without numpy; callers may import t
     ENCODING_NAMES,
     ENCODING_PREFERENCE,
     ENCODINGS,
+    MSG_MAP_DELTA,
     DecodeLimits,
 )
 
@@ -240,6 +241,8 @@ def peek(data) -> MessageInfo:
         raise UnknownMessageType("byte 0 is -128, an MTP control frame, not a message")
     if msg_type == MSG_MERGE_RESULT:
         raise UnknownMessageType("message type 2 is a merge result, not a map (decode_merge_result)")
+    if msg_type == MSG_MAP_DELTA:
+        raise UnknownMessageType("message type 4 is a map delta, not a whole map (delta.apply_delta)")
     if msg_type == MSG_PEER_HELLO:
         raise UnknownMessageType(f"message type {msg_type} is reserved: this coopd refuses it")
     raise UnknownMessageType(f"unknown message type {msg_type}")

@@ -7,6 +7,16 @@ The receiver is a real SharingService in its own process (inspect + full decode 
 the sender a PeerLink: the time is taken from encode start to the receiver's ack, so it covers
 exactly what a peer waits for. Prints JSON and writes out/bench/share.json.
 Usage: scripts/bench share [--sizes 6M,25M,110M] [--repeat 3] [--no-shaped] [--rate-mbit 54]
+
+--delta: bytes on the wire per drone per minute of an exploration flight, full maps against deltas.
+firmware_sim drones fly their routes in a world (in-process, mapped with coopd's Mapper; flown once and
+cached in out/bench/); every simulated second each drone's map, cropped to its known box as the daemon
+publishes it (once a second when it changed), goes from a real SharingService to another on loopback,
+once with deltas off and once on, each version acknowledged before the next. Reported per drone: MTP
+bytes sent (frames and data blocks; acks and TCP/IP headers not counted) per minute of flight, over the
+whole flight and in steady exploration (after the first --steady-after-s seconds), and the ratio; the
+receiver's last map is checked to be the sender's byte for byte. Writes out/bench/share_delta.json.
+Usage: scripts/bench share --delta [--world hospital] [--drones 3] [--block-sizes 4096,1024]
 """
 
 import argparse
@@ -30,6 +40,7 @@ from coopd.grid import OccupancyGrid  # noqa: E402
 from coopd.sharing import wire  # noqa: E402
 from coopd.sharing.service import SharingConfig, SharingService, wire_inspect, wire_verifier  # noqa: E402
 from coopd.sharing.transport import PeerLink, TransportSettings  # noqa: E402
+from coopd.sharing.wire_options import DEFAULT_BRICK_EDGE  # noqa: E402
 from tests.sharing.realistic_maps import building_map  # noqa: E402
 
 SIZES = {"6M": (250, 250, 100), "25M": (500, 500, 100), "110M": (1050, 1050, 100)}
@@ -106,6 +117,168 @@ def send_runs(host: str, port: int, size: str, encoding: str, repeat: int, versi
     best = min(runs, key=lambda x: x["end_to_end_s"])
     return {"cells": grid.size, "encoding": wire.DEFAULT_ENCODING if encoding == "default" else encoding,
             **best, "runs_end_to_end_s": [round(x["end_to_end_s"], 4) for x in runs]}
+
+
+# --------------------------------------------------------------------------------- deltas
+DELTA_GOAL_RATIO = 10.0
+"""Steady exploration should cost at most a tenth of the bytes with deltas."""
+
+
+def flight_recording(world: str, seed: int, drones: int) -> list[list[tuple[float, bytes]]]:
+    """Per drone, (simulated time, full map message) of every second its map changed: what its daemon
+    publishes (the map cropped to its known box plus the snapshot pad). Cached in out/bench/."""
+    import numpy as np
+
+    path = ROOT / "out" / "bench" / f"share_flight_{world}_s{seed}_n{drones}.npz"
+    if path.exists():
+        with np.load(path) as z:
+            out = []
+            for i in range(drones):
+                data = z[f"d{i}_data"]
+                out.append([(float(t), data[int(a):int(b)].tobytes()) for t, a, b in z[f"d{i}_index"]])
+            return out
+    from coopd.daemon.service import SNAPSHOT_PAD_CELLS
+    from firmware_sim import simset
+
+    seen = [0] * drones
+    out: list[list[tuple[float, bytes]]] = [[] for _ in range(drones)]
+
+    def each_second(t, mappers):
+        for i, m in enumerate(mappers):
+            if m.version > seen[i]:
+                seen[i] = m.version
+                grid = m.grid.shrunk(pad=SNAPSHOT_PAD_CELLS)
+                out[i].append((t, wire.encode_map(grid, wire.MapMeta(i + 1, m.version, t))))
+
+    print(f"flying {drones} drones in {world} (seed {seed}) once, to record their maps ...", file=sys.stderr)
+    simset.fly(world, seed, drones, each_second=each_second)
+    arrays = {}
+    for i, seq in enumerate(out):
+        ends = np.cumsum([len(m) for _, m in seq])
+        arrays[f"d{i}_data"] = np.frombuffer(b"".join(m for _, m in seq), dtype=np.uint8)
+        arrays[f"d{i}_index"] = np.array([(t, e - len(m), e) for (t, m), e in zip(seq, ends, strict=True)],
+                                         dtype=np.float64)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
+    return out
+
+
+def replay(sequence, deltas: bool, block_size: int, steady_after_s: float, brick_edge: int) -> dict:
+    """One drone's recorded maps from a SharingService to another on loopback, each version acknowledged
+    before the next; MTP bytes the sender sent, over the flight and after steady_after_s."""
+    settings = replace(SETTINGS, block_size=block_size, read_timeout=5.0, transfer_base_s=10.0)
+    verify = wire_verifier(settings.max_cells, settings.max_bytes)
+    rx = SharingService(SharingConfig(vehicle_id=200, listen_host="127.0.0.1", port=0, deltas=deltas,
+                                      transport=settings), inspect=wire_inspect, verify=verify).start()
+    vid = wire.peek(sequence[0][1]).vehicle_id
+    tx = SharingService(SharingConfig(vehicle_id=vid, listen_host="127.0.0.2", port=0, deltas=deltas,
+                                      delta_brick_edge=brick_edge, peers=(f"127.0.0.1:{rx.address[1]}",),
+                                      scan_period=0.1, transport=settings)).start()
+    steady_from = None
+    publish_s = []
+    try:
+        for t, message in sequence:
+            grid, meta = wire.decode_map(message)
+            if steady_from is None and t >= steady_after_s:
+                steady_from = peer(tx, 200)
+            t0 = time.perf_counter()
+            tx.publish(message, meta.version, grid)
+            publish_s.append(time.perf_counter() - t0)
+            deadline = time.monotonic() + 30.0
+            while tx.peers.has_version(200, vid) != meta.version:  # stored, acknowledged and counted
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"vehicle {vid} v{meta.version} did not arrive within 30 s")
+                time.sleep(0.002)
+        identical = bytes(rx.received.get(vid).data) == sequence[-1][1]
+        last = peer(tx, 200)
+    finally:
+        tx.stop()
+        rx.stop()
+    flight_s = sequence[-1][0]
+    steady_from = steady_from or last
+    steady_s = max(flight_s - steady_after_s, 1e-9)
+    return {"versions": len(sequence), "flight_s": round(flight_s, 1), "identical": identical,
+            "maps_sent": last["maps_sent"], "deltas_sent": last["deltas_sent"],
+            "delta_fallbacks": last["delta_fallbacks"], "message_bytes": last["bytes_sent"],
+            "wire_bytes": last["wire_bytes_sent"],
+            "wire_bytes_per_min": round(last["wire_bytes_sent"] * 60 / flight_s),
+            "steady_wire_bytes_per_min": round((last["wire_bytes_sent"] - steady_from["wire_bytes_sent"]) * 60
+                                               / steady_s),
+            "steady_message_bytes_per_min": round((last["bytes_sent"] - steady_from["bytes_sent"]) * 60
+                                                  / steady_s),
+            "publish_ms_mean": round(1000 * sum(publish_s) / len(publish_s), 2)}
+
+
+def delta_costs(size: str = "25M") -> dict:
+    """Seconds of each step of a delta on a building map of `size` with a 10x10x10 patch changed: the
+    ledger's hashing (per published map), making the delta, and the receiver's rebuild and encode;
+    next to the full encode the daemon does for every published map anyway."""
+    from coopd.sharing import delta
+
+    grid = make_grid(size)
+    first = wire.encode_map(grid, wire.MapMeta(1, 1, 0.0))
+    ledger = delta.BrickLedger(DEFAULT_BRICK_EDGE)
+    ledger.record(grid, 1, first)
+    changed = grid.copy()
+    changed.cells[100:110, 100:110, 10:20] = 100
+    t0 = time.perf_counter()
+    second = wire.encode_map(changed, wire.MapMeta(1, 2, 0.0))
+    t1 = time.perf_counter()
+    ledger.record(changed, 2, second)
+    t2 = time.perf_counter()
+    data = ledger.delta_for(1)
+    t3 = time.perf_counter()
+    base = wire.decode_map(first)
+    t4 = time.perf_counter()
+    rebuilt, meta = delta.apply_delta(*base, data)
+    t5 = time.perf_counter()
+    again = wire.encode_map(rebuilt, meta)
+    t6 = time.perf_counter()
+    if again != second:
+        raise RuntimeError("the rebuilt map is not the sender's")
+    return {"cells": grid.size, "full_message_bytes": len(second), "delta_bytes": len(data),
+            "full_encode_s": round(t1 - t0, 4), "ledger_record_s": round(t2 - t1, 4),
+            "make_delta_s": round(t3 - t2, 4), "receiver_decode_base_s": round(t4 - t3, 4),
+            "receiver_apply_s": round(t5 - t4, 4), "receiver_encode_s": round(t6 - t5, 4)}
+
+
+def _ratio(full: float, delta: float) -> float | None:
+    return round(full / delta, 2) if delta > 0 else None
+
+
+def peer(svc: SharingService, vid: int) -> dict:
+    return next(p for p in svc.stats()["peers"] if p["vehicle_id"] == vid)
+
+
+def run_delta(world: str, seed: int, drones: int, block_sizes, steady_after_s: float,
+              brick_edge: int) -> dict:
+    warm_up()
+    recording = flight_recording(world, seed, drones)
+    rows = []
+    for bs in block_sizes:
+        for deltas in (False, True):
+            per_drone = [replay(seq, deltas, bs, steady_after_s, brick_edge) for seq in recording]
+            keys = ("wire_bytes_per_min", "steady_wire_bytes_per_min", "steady_message_bytes_per_min")
+            mean = {k: round(sum(d[k] for d in per_drone) / len(per_drone)) for k in keys}
+            rows.append({"block_size": bs, "deltas": deltas, **mean, "per_drone": per_drone})
+            print(f"block {bs} deltas {deltas}: {mean}", file=sys.stderr)
+    ratios = []
+    for bs in block_sizes:
+        full, dlt = (next(r for r in rows if r["block_size"] == bs and r["deltas"] is d)
+                     for d in (False, True))
+        ratios.append({"block_size": bs,
+                       **{f"{k}ratio": _ratio(full[f"{k}bytes_per_min"], dlt[f"{k}bytes_per_min"])
+                          for k in ("wire_", "steady_wire_", "steady_message_")}})
+    default = next(r for r in ratios if r["block_size"] == block_sizes[0])
+    return {"benchmark": "share --delta", "host": platform.node(), "cpus": os.cpu_count(), "world": world,
+            "seed": seed, "drones": drones, "brick_edge": brick_edge, "steady_after_s": steady_after_s,
+            "what": "MTP bytes one drone sends one peer per minute of flight (frames + data blocks; acks and "
+                    "TCP/IP headers not counted), its map published every second it changed, full maps vs "
+                    "deltas; steady = after steady_after_s",
+            "ratios": ratios, "goal_steady_ratio": DELTA_GOAL_RATIO,
+            "goal_met": (default["steady_wire_ratio"] or 0) >= DELTA_GOAL_RATIO,
+            "all_identical": all(d["identical"] for r in rows for d in r["per_drone"]),
+            "costs_25M": delta_costs(), "runs": rows}
 
 
 # --------------------------------------------------------------------------------- orchestration
@@ -263,6 +436,14 @@ def main() -> None:
     ap.add_argument("--fan-in", default="1,4,16", help="concurrent senders into one receiver ('' to skip)")
     ap.add_argument("--serve", nargs=2, metavar=("HOST", "PORT"))
     ap.add_argument("--send", nargs=6, metavar=("HOST", "PORT", "SIZE", "ENCODING", "REPEAT", "VERSION"))
+    ap.add_argument("--delta", action="store_true", help="bytes per drone per minute, full maps vs deltas")
+    ap.add_argument("--world", default="hospital", help="--delta: the firmware_sim world flown")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--drones", type=int, default=3)
+    ap.add_argument("--block-sizes", default="4096,1024",
+                    help="--delta: MTP block sizes (the first one is the one judged against the goal)")
+    ap.add_argument("--steady-after-s", type=float, default=30.0)
+    ap.add_argument("--brick-edge", type=int, default=DEFAULT_BRICK_EDGE)
     ap.add_argument("--key", action="store_true",
                     help="both ends hold a swarm key: transfers authenticated (HMAC) and encrypted (AEAD)")
     args = ap.parse_args()
@@ -275,6 +456,14 @@ def main() -> None:
     if args.send:
         host, port, size, enc, repeat, version = args.send
         print(json.dumps(send_runs(host, int(port), size, enc, int(repeat), int(version))))
+        return
+    if args.delta:
+        report = run_delta(args.world, args.seed, args.drones, [int(b) for b in args.block_sizes.split(",")],
+                           args.steady_after_s, args.brick_edge)
+        text = json.dumps(report, indent=2)
+        print(text)
+        (ROOT / "out" / "bench").mkdir(parents=True, exist_ok=True)
+        (ROOT / "out" / "bench" / "share_delta.json").write_text(text + "\n")
         return
     sizes = [s for s in args.sizes.split(",") if s]
     for s in sizes:

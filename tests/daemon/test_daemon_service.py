@@ -693,3 +693,54 @@ def test_maps_evicted_from_the_store_leave_no_checkpoint_to_come_back(tmp_path):
         assert d.store.names() == ["peer-7", "peer-9"]  # ... and its checkpoint with it
     finally:
         d.mapper.close()
+
+
+def test_two_daemons_send_their_maps_as_deltas_and_hold_identical_maps(wd):
+    """Daemon 1 maps (cells set in its grid, version bumped as a frame does) and publishes; daemon 2
+    ends with daemon 1's map bit for bit after every version, most of them sent as deltas, and daemon 1
+    charges its delta ledger to the memory budget."""
+    from coopd.sharing import versions
+
+    mav, share = port_block(4)
+    key = swarm_key_file(wd)
+
+    def config(vid: int, other: int):
+        return from_dict({
+            "vehicle": {"id": vid, "mavlink": f"udpin:127.0.0.1:{mav + vid}"},
+            "camera": {"source": f"socket:{wd}/no-camera-{vid}.sock"},
+            "sharing": {"listen_host": f"127.0.0.{vid}", "port": share + vid, "swarm_key_file": str(key),
+                        "peers": [f"127.0.0.{other}:{share + other}"], "scan_period_s": 0.2},
+            "daemon": {"state_dir": str(wd / f"state-{vid}"), "memory_mb": in_process_memory_mb(),
+                       "control_socket": str(wd / f"control-{vid}.sock")},
+        })
+
+    one, two = Daemon(config(1, 2)), Daemon(config(2, 1))
+    rng = np.random.default_rng(4)
+    try:
+        one.sharing.start()
+        two.sharing.start()
+        for step in range(8):
+            with one.mapper.lock:  # a room mapped, then a few cells seen again each step
+                x0 = 12 * step
+                one.mapper.grid.set_keys(np.array([[x, y, z] for x in range(x0, x0 + 12)
+                                                   for y in range(-10, 10) for z in range(0, 20)]),
+                                         rng.choice(np.array([0, 0, 100], dtype=np.int8), size=12 * 20 * 20))
+                one.mapper.grid.set_keys(rng.integers(0, x0 + 12, size=(5, 3)) - [0, 10, 0],
+                                         np.full(5, 60, dtype=np.int8))
+                one.mapper.version += 1
+            one._publish_local()
+            version = versions.compose(one.epoch, one.mapper.version)
+            assert wait_until(lambda v=version: two.sharing.received.version(1) == v, 10)
+            grid, _ = two.sharing.decode(1)
+            assert grid.same_cells(one.mapper.grid)
+        def peer():
+            return next(p for p in one.sharing.stats()["peers"] if p["vehicle_id"] == 2)
+
+        assert wait_until(lambda: peer()["maps_sent"] == 8, 5), peer()  # the last ack counted
+        assert peer()["deltas_sent"] >= 6, peer()
+        one._account_memory()
+        assert one.budget.snapshot()["entries"]["sharing-deltas"] >= one._local_grid.size
+    finally:
+        for d in (one, two):
+            d.sharing.stop()
+            d.mapper.close()

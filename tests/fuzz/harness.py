@@ -203,6 +203,72 @@ class WireTarget(Target):
             raise Finding("wire: decode(encode(decode(x))) differs from decode(x)")
 
 
+class DeltaTarget(Target):
+    """delta.apply_delta on a fixed held map (and the service's inspect on type-4 messages): only WireError
+    (DeltaBaseError is one), bounded time and memory; an accepted delta gives a map of valid cells with the
+    box its header names, and the held map is never changed."""
+
+    name = "delta"
+
+    def __init__(self, measure_memory: bool = True):
+        from coopd.sharing import delta
+
+        self.measure_memory = measure_memory
+        rng = random.Random(6)
+        base = sample_grid(rng)
+        base = OccupancyGrid(base.cells, 0.1, base.offset)
+        self.base, self.base_meta = base, wire.MapMeta(9, 1, 1.7e9)
+        self.base_cells = base.cells.copy()
+        self._seeds = []
+        for edge in (4, 8):
+            ledger = delta.BrickLedger(edge, full_share=100.0)
+            ledger.record(base, 1, wire.encode_map(base, self.base_meta))
+            grid = base
+            for v in range(2, 5):
+                grid = grid.copy()
+                keys = np.array([[rng.randint(-60, 60) for _ in range(3)] for _ in range(4)])
+                grid.set_keys(keys, sample_cells(rng, 4))
+                grid = grid.shrunk(pad=rng.randint(0, 3))
+                ledger.record(grid, v, wire.encode_map(grid, wire.MapMeta(9, v, 1.7e9 + v)))
+                self._seeds.append(ledger.delta_for(1))
+
+    def seeds(self) -> list[bytes]:
+        return list(self._seeds)
+
+    def post_mutate(self, data: bytes, rng: random.Random) -> bytes:
+        """Half the mutants get a matching payload CRC, so the index and brick checks behind it run."""
+        from coopd.sharing import delta
+
+        head = delta.DELTA_HEADER.size
+        if len(data) < head or rng.random() < 0.5:
+            return data
+        out = bytearray(data)
+        struct.pack_into("<I", out, head - 4, zlib.crc32(out[head:]))
+        return bytes(out)
+
+    def check(self, data: bytes) -> None:
+        from coopd.sharing import delta
+        from coopd.sharing.service import wire_inspect
+
+        bound = 8 * FUZZ_LIMITS.max_cells + 4 * len(data) + (1 << 20)
+        with time_limit(CALL_LIMIT_S, "delta.apply_delta"), \
+                allocation_limit(bound, "delta.apply_delta", self.measure_memory):
+            if data[:1] == bytes([delta.MSG_MAP_DELTA]):
+                expect_only(wire.WireError, "wire_inspect", lambda: wire_inspect(data))
+            out = expect_only(wire.WireError, "delta.apply_delta",
+                              lambda: delta.apply_delta(self.base, self.base_meta, data, FUZZ_LIMITS))
+        if not np.array_equal(self.base.cells, self.base_cells):
+            raise Finding("delta.apply_delta changed the held map")
+        if out is None:
+            return
+        grid, meta = out
+        info = delta.peek_delta(data)
+        valid = grid.cells.min() >= codec.CELL_MIN and grid.cells.max() <= codec.CELL_MAX
+        if grid.shape != info.shape or tuple(int(v) for v in grid.offset) != info.offset \
+                or meta.version != info.map_version or not valid:
+            raise Finding("delta.apply_delta accepted a delta into a map other than its header names")
+
+
 class MergeResultTarget(Target):
     """wire.decode_merge_result and the sharing service's inspect on type-2 messages (merge results):
     only WireError; a decoded message re-encodes to one that decodes to the same fields."""
@@ -951,7 +1017,7 @@ def make_target(name: str, directory):
     """The target called `name`; file and socket targets keep their files under `directory`."""
     factories = {
         "codec": CodecTarget, "planes": PlanesTarget, "wire": WireTarget, "mtp": MtpTarget,
-        "merge_result": MergeResultTarget,
+        "merge_result": MergeResultTarget, "delta": DeltaTarget,
         "camera_header": CameraHeaderTarget, "mavlink": MavlinkIngestTarget,
         "cmap": lambda: CmapTarget(directory), "octomap": OctomapTarget,
         "config": lambda: ConfigTarget(directory),
@@ -964,5 +1030,5 @@ def make_target(name: str, directory):
     return factories[name]()
 
 
-TARGETS = ("codec", "planes", "wire", "merge_result", "cmap", "octomap", "mtp", "transport", "camera_header",
-           "camera_socket", "control", "control_client", "config", "mavlink", "mavlink_udp")
+TARGETS = ("codec", "planes", "wire", "merge_result", "delta", "cmap", "octomap", "mtp", "transport",
+           "camera_header", "camera_socket", "control", "control_client", "config", "mavlink", "mavlink_udp")
