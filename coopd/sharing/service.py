@@ -215,7 +215,7 @@ class SharingService:
             if self._own is not None and version < self._own[0]:
                 raise ValueError(f"version {version} is older than the published {self._own[0]}")
         bricks = None
-        if grid is not None and self.config.deltas and self.config.mtp:  # deltas travel over MTP only
+        if grid is not None and self.config.deltas:
             from .delta import BrickLedger
 
             bricks = self._bricks
@@ -228,11 +228,13 @@ class SharingService:
                     log.error("map v%d published without deltas: %s", version, e)
                     bricks = None
         with self._update:
+            previous = None if self._own is None else self._own[0]
             self._own = (version, bytes(message))
             self._bricks = bricks
             self._update.notify_all()
-        if self.zenoh is not None:
-            self.zenoh.publish("map", self._own[1])
+        if self.zenoh is not None:  # one delta for everyone: from the version published before
+            delta = None if bricks is None or previous is None else bricks.delta_for(previous)
+            self.zenoh.publish_map(self._own[1], delta)
 
     @property
     def delta_bytes(self) -> int:

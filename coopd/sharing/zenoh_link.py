@@ -44,7 +44,7 @@ HEAD = struct.Struct("<2sB")
 NONCE_SIZE = 12
 TAG_SIZE = 16
 ENVELOPE_INFO = b"coopd-zenoh/1 envelope"
-KINDS = {"map": "map", "merge": "result"}
+KINDS = {"map": "map", "merge": "result", "delta": "delta"}
 """Key expression suffix -> the wire message kind it must carry."""
 QUEUE_MESSAGES = 8
 """Received publications waiting for the receive thread; more are dropped (counted)."""
@@ -209,6 +209,7 @@ class ZenohLink:
         self._entities = [
             self.session.declare_subscriber(f"{base}/*/map", self._on_sample),
             self.session.declare_subscriber(f"{base}/*/merge", self._on_sample),
+            self.session.declare_subscriber(f"{base}/*/delta", self._on_sample),
             self.session.declare_queryable(f"{base}/{self.vehicle_id}/*", self._on_query),
             self.session.liveliness().declare_token(f"{base}/{self.vehicle_id}/alive"),
             self.session.liveliness().declare_subscriber(f"{base}/*/alive", self._on_alive, history=True),
@@ -243,12 +244,29 @@ class ZenohLink:
     def publish(self, kind: str, message: bytes) -> None:
         """Offer our newest message of a kind ('map' or 'merge'): kept for queries at once, put on the
         network by the send thread (a newer one replaces one not yet sent)."""
-        key = key_expr(self.settings.swarm, self.vehicle_id, kind)
-        envelope = seal(self._cipher, key, message)
+        envelope = self._seal(kind, message)
         with self._new:
             self._latest[kind] = envelope
             self._unsent[kind] = envelope
             self._new.notify_all()
+
+    def publish_map(self, message: bytes, delta: bytes | None = None) -> None:
+        """Offer our newest map: the full message is what queries get; on the network goes the delta
+        from the map published before it when there is one (a vehicle that holds that map applies it,
+        any other fetches the full map), else the full map. A delta still unsent when the next map
+        comes would skip a version, so the full map goes instead."""
+        full = self._seal("map", message)
+        with self._new:
+            self._latest["map"] = full
+            if delta is not None and "delta" not in self._unsent and "map" not in self._unsent:
+                self._unsent["delta"] = self._seal("delta", delta)
+            else:
+                self._unsent.pop("delta", None)
+                self._unsent["map"] = full
+            self._new.notify_all()
+
+    def _seal(self, kind: str, message: bytes) -> bytes:
+        return seal(self._cipher, key_expr(self.settings.swarm, self.vehicle_id, kind), message)
 
     def _send_loop(self) -> None:
         """Put each newest message reliably (congestion control BLOCK: on a slow link it waits for room
@@ -270,7 +288,7 @@ class ZenohLink:
                     self.counters["publish_failed"] += 1
                     log.debug("zenoh: publishing our %s failed: %s", kind, e)
                     continue
-                self.counters["published"] += 1
+                self.counters["published" if kind != "delta" else "published_delta"] += 1
                 self.counters["bytes_out"] += len(envelope)
 
     def _on_query(self, query) -> None:
@@ -296,10 +314,14 @@ class ZenohLink:
         """A vehicle's liveliness token appeared: fetch its latest map and merge result."""
         parts = str(sample.key_expr).split("/")
         if str(sample.kind).endswith("PUT") and len(parts) == 4 and parts[2] != str(self.vehicle_id):
-            try:
-                self._fetch.put_nowait(parts[2])
-            except queue.Full:
-                self.counters["fetch_dropped"] += 1
+            self._want(parts[2])
+
+    def _want(self, vid: str) -> None:
+        """Have the fetch thread query this vehicle's latest map and merge result."""
+        try:
+            self._fetch.put_nowait(vid)
+        except queue.Full:
+            self.counters["fetch_dropped"] += 1
 
     def _fetch_loop(self) -> None:
         while not self._stop.is_set():
@@ -365,7 +387,13 @@ class ZenohLink:
             status = self._accept(Arrival(memoryview(message), 1, None, f"zenoh:{key}",
                                           time.monotonic() - queued_at))
             self.counters[f"accepted_{kind}" if status == 0 else "stale"] += 1
+            if kind == "delta" and status == 0:
+                self.counters["bytes_in_delta"] += len(payload)
         except Rejected as e:
+            if e.cause == "delta_base":  # we do not hold the map it applies to: fetch the full one
+                self.counters["delta_refetch"] += 1
+                self._want(str(vid))
+                return
             self._drop(e.cause, vid, key, str(e))
         except Exception as e:  # a bug in the receive path must cost one message, not the link
             log.exception("zenoh: internal error receiving %s", key)

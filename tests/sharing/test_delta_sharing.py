@@ -4,7 +4,7 @@ receiver does not hold, or a malformed one, is refused, counted, and changes not
 
 import numpy as np
 import pytest
-from sharing_support import failures, settings, wait_until
+from sharing_support import failures, growing_maps, settings, wait_until
 
 from coopd.grid import OccupancyGrid
 from coopd.sharing import delta, mtp, wire
@@ -22,28 +22,6 @@ def real_service(vid: int, peers=(), deltas: bool = True, **transport) -> Sharin
     cfg = SharingConfig(vehicle_id=vid, listen_host=host, port=0, peers=tuple(peers), scan_period=0.2,
                         deltas=deltas, transport=s)
     return SharingService(cfg, inspect=wire_inspect, verify=wire_verifier(s.max_cells, s.max_bytes)).start()
-
-
-def growing_maps(versions: int, seed: int = 0):
-    """(grid, version, message) of a map explored room by room: each version knows a new patch and
-    changes a few cells seen before, and the box grows now and then."""
-    rng = np.random.default_rng(seed)
-    grid = OccupancyGrid.empty((60, 60, 20), 0.1)
-    grid.cells[10:50, 10:50, 4:16] = rng.choice(np.array([0, 0, 100, 20], dtype=np.int8), size=(40, 40, 12))
-    out = []
-    for v in range(1, versions + 1):
-        x, y = rng.integers(-20 - v, 20 + v, size=2)
-        patch = rng.choice(np.array([0, 0, 0, 100, 30], dtype=np.int8), size=(6, 6, 8))
-        keys = np.stack(np.meshgrid(np.arange(x, x + 6), np.arange(y, y + 6), np.arange(-4, 4),
-                                    indexing="ij"), axis=-1).reshape(-1, 3)
-        grid.set_keys(keys, patch.reshape(-1))
-        known = np.argwhere(grid.cells != -1)
-        if len(known):
-            pick = known[rng.integers(0, len(known), size=10)]
-            grid.cells[pick[:, 0], pick[:, 1], pick[:, 2]] = 70
-        snap = grid.shrunk(pad=4)
-        out.append((snap, v, wire.encode_map(snap, MapMeta(1, v, 100.0 + v))))
-    return out
 
 
 def exchange(deltas: bool, maps) -> tuple[SharingService, SharingService]:

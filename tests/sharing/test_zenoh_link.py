@@ -4,9 +4,10 @@ publish, fetch late, and refuse what the receive path refuses. Sessions listen a
 
 import pytest
 import sharing_testmsg as tm
-from sharing_support import failures, free_port, settings, wait_until
+from sharing_support import failures, free_port, growing_maps, settings, wait_until
 
-from coopd.sharing.service import SharingConfig, SharingService
+from coopd.sharing import delta
+from coopd.sharing.service import SharingConfig, SharingService, wire_inspect, wire_verifier
 from coopd.sharing.transport import Rejected
 from coopd.sharing.zenoh_link import (
     ZenohSettings,
@@ -174,3 +175,67 @@ def test_peers_told_of_others_connect_to_them():
     finally:
         for s in line:
             s.stop()
+
+
+def real_node(vid: int, listen_port: int, connect=()) -> SharingService:
+    """A Zenoh-only service reading real map messages (wire format, full decode), deltas on."""
+    z = ZenohSettings(swarm="t", listen=(f"tcp/127.0.0.1:{listen_port}",),
+                      connect=tuple(f"tcp/127.0.0.1:{p}" for p in connect), multicast_scouting=False)
+    s = settings(swarm_key=KEY, max_bytes=4 << 20, max_cells=1 << 22)
+    cfg = SharingConfig(vehicle_id=vid, mtp=False, zenoh=z, transport=s)
+    return SharingService(cfg, inspect=wire_inspect, verify=wire_verifier(s.max_cells, s.max_bytes)).start()
+
+
+def test_maps_go_as_deltas_over_zenoh_and_end_bit_identical():
+    """Vehicle 1 publishes a growing map version by version: after the first, each goes out as the delta
+    from the one before; vehicle 2 ends with vehicle 1's exact message on fewer bytes; a vehicle that
+    joins late fetches the full map and then follows the deltas."""
+    ports = [free_port() for _ in range(3)]
+    maps = growing_maps(12)
+    a = real_node(1, ports[0])
+    b = real_node(2, ports[1], connect=[ports[0]])
+    late = None
+    try:
+        assert wait_until(lambda: a.stats()["zenoh"]["peers"], 10)
+        for grid, v, message in maps[:8]:
+            a.publish(message, v, grid)
+            assert wait_until(lambda v=v: b.received.version(1) == v, 10), (v, b.stats()["zenoh"])
+        late = real_node(3, ports[2], connect=[ports[0]])
+        assert wait_until(lambda: late.received.version(1) == 8, 10), late.stats()["zenoh"]
+        for grid, v, message in maps[8:]:
+            a.publish(message, v, grid)
+            assert wait_until(lambda v=v: b.received.version(1) == v and late.received.version(1) == v, 10)
+        final = maps[-1][2]
+        assert b.received.get(1).data == final and late.received.get(1).data == final  # bit for bit
+        za, zb = a.stats()["zenoh"], b.stats()["zenoh"]
+        assert zb["accepted_delta"] >= 10 and za["published_delta"] >= 10, (za, zb)
+        full_bytes = sum(len(m) for _, _, m in maps)
+        print(f"zenoh deltas: {zb['bytes_in']} bytes received for 12 versions, {full_bytes} as full maps")
+        assert zb["bytes_in"] < full_bytes / 2
+        assert late.stats()["zenoh"]["accepted_delta"] >= 3 and failures(b) == {} and failures(late) == {}
+    finally:
+        for s in (a, b, late):
+            if s is not None:
+                s.stop()
+
+
+def test_a_delta_whose_base_is_not_held_fetches_the_full_map():
+    ports = [free_port() for _ in range(2)]
+    maps = growing_maps(3)
+    receiver = real_node(2, ports[0])
+    raw = zenoh.open(_raw_config(ports[1], ports[0]))
+    try:
+        grid, v, _ = maps[2]
+        bricks = delta.BrickLedger()
+        for g, ver, m in maps:
+            bricks.record(g, ver, m)
+        d = bricks.delta_for(2)  # 2 -> 3, and the receiver holds nothing of vehicle 1
+        assert d is not None
+        key = key_expr("t", 1, "delta")
+        assert wait_until(lambda: receiver.stats()["zenoh"]["peers"], 10)
+        raw.put(key, seal(envelope_cipher(KEY), key, d))
+        assert wait_until(lambda: receiver.stats()["zenoh"].get("delta_refetch") == 1, 10), receiver.stats()
+        assert receiver.received.get(1) is None and failures(receiver) == {}  # not a fault of the sender
+    finally:
+        raw.close()
+        receiver.stop()
