@@ -17,9 +17,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 from coopd.daemon import control  # noqa: E402
 from firmware_sim.accuracy import map_accuracy  # noqa: E402
+from tests.ports import process_slot  # noqa: E402
 
 PYTHON = sys.executable
-_BLOCK = 15300 + (os.getpid() % 8) * 12
+_BLOCK = 15300 + process_slot(8) * 12
 
 
 def port_block(i: int) -> tuple[int, int]:
