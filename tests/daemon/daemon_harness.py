@@ -18,9 +18,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 from coopd.daemon import control  # noqa: E402
 from firmware_sim.accuracy import map_accuracy  # noqa: E402
+from tests.ports import process_slot  # noqa: E402
 
 PYTHON = sys.executable
-_BLOCK = 15300 + (os.getpid() % 8) * 12
+_BLOCK = 15300 + process_slot(8) * 12
 
 
 def port_block(i: int) -> tuple[int, int]:
@@ -46,6 +47,12 @@ def wait_until(predicate, timeout: float, poll: float = 0.1):
         time.sleep(poll)
 
 
+SIM_WALL_S = 600
+"""How long a Sim runs at most, in wall-clock seconds (pytest's timeout): one left behind by a test
+stops by itself, and none stops under a test that is merely slow. --duration counts simulated
+seconds, which pass `speed` times faster."""
+
+
 class Sim:
     """coopd-sim in a subprocess; endpoints parsed from its first JSON line."""
 
@@ -58,7 +65,7 @@ class Sim:
         self.proc = subprocess.Popen(
             [PYTHON, "-m", "firmware_sim.cli", "--world", world, "--seed", str(seed), "--speed", str(speed),
              "--route", "builtin", "--vehicles", str(vehicles), "--mavlink-port", str(mavlink_port),
-             "--camera-dir", str(self.camera_dir), "--duration", "600", "--gcs-port", "0"],
+             "--camera-dir", str(self.camera_dir), "--duration", str(SIM_WALL_S * speed), "--gcs-port", "0"],
             stdout=subprocess.PIPE, stderr=self.log, env=env(), cwd=ROOT,
         )
         line = self.proc.stdout.readline()

@@ -52,6 +52,7 @@ def _merger(chain, peer_results=(), distributed=True, published=None, vehicle_id
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_own_warm_start_replaces_the_full_search_and_validated_edges_are_published(chain):
     published = []
     m = _merger(chain, published=published)
@@ -76,6 +77,7 @@ def test_own_warm_start_replaces_the_full_search_and_validated_edges_are_publish
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_a_peers_edges_replace_every_full_registration_unless_distributed_is_off(chain):
     peer = [_result_message(1, (1, 0, _truth(chain, 1, 0)), (1, 2, _truth(chain, 1, 2)))]
     m = _merger(chain, peer)
@@ -91,6 +93,7 @@ def test_a_peers_edges_replace_every_full_registration_unless_distributed_is_off
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_a_peers_wrong_edge_is_refused_and_the_map_still_merges_correctly(chain):
     wrong = rigid(rotation_z(np.radians(35)), [1.5, -1.0, 0.0]) @ _truth(chain, 1, 0)
     m = _merger(chain, [_result_message(1, (1, 0, wrong))])
@@ -102,6 +105,7 @@ def test_a_peers_wrong_edge_is_refused_and_the_map_still_merges_correctly(chain)
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_a_higher_vehicle_id_leaves_the_full_search_to_the_lower_one_and_validates_its_result(chain):
     """Vehicle 5 holds maps of 1 and 2: it defers their full search, then merges both from vehicle 1's
     edges (chained through 1 for map 2) without searching at all."""
@@ -123,6 +127,7 @@ def test_a_higher_vehicle_id_leaves_the_full_search_to_the_lower_one_and_validat
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_the_deferral_is_bounded_and_the_lowest_id_never_defers(chain):
     m = _merger(chain, vehicle_id=5, defer_full_s=0.05)
     assert m.merge_once()["outcome"] == "done" and m.counters["full_registrations"] == 0

@@ -111,8 +111,9 @@ def test_the_merging_thread_merges_again_to_confirm_when_nothing_changes(flip):
     try:
         m.request("start")
         deadline = time.monotonic() + 10
-        while (len(calls) < 2 or m.status()["provisional"]) and time.monotonic() < deadline:
+        while (m.counters["done"] < 2 or m.status()["provisional"]) and time.monotonic() < deadline:
             time.sleep(0.02)
+        time.sleep(1.0)  # 20 times min_gap_s: a merger that went on merging would count more than 2
     finally:
         m.stop()
         t.join(5)

@@ -1,6 +1,7 @@
 """sd_notify: a test binds its own NOTIFY_SOCKET (path and abstract) and reads what coopd sends."""
 
 import os
+import queue
 import shutil
 import socket
 import subprocess
@@ -142,6 +143,7 @@ for _ in range(100000):
         break
 os.environ["NOTIFY_SOCKET"] = path  # libsystemd reads the environment
 notifier = Notifier(sys.argv[1])
+print("probe started", flush=True)
 threading.Thread(target=notifier.watchdog, daemon=True).start()
 time.sleep(0.5)
 print("main thread runs, dropped", notifier.dropped, flush=True)
@@ -149,16 +151,41 @@ os._exit(0)
 """
 
 
+PROBE_START_S = 60.0
+"""How long the probe may take to import coopd and fill the queue on a loaded machine."""
+FROZEN_S = 10.0
+"""The probe's main thread prints 0.5 s after it starts the notify thread: silent this long, it froze."""
+
+
 def _full_queue_probe(backend: str) -> str:
-    """stdout of FULL_QUEUE_PROBE; empty when the process froze (killed after 20 s)."""
+    """What FULL_QUEUE_PROBE printed after its start line; empty when the process froze (nothing within
+    FROZEN_S of the start line: it is killed)."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    proc = subprocess.Popen([sys.executable, "-c", FULL_QUEUE_PROBE, backend], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    lines: queue.Queue = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True)
+    reader.start()
     try:
-        r = subprocess.run([sys.executable, "-c", FULL_QUEUE_PROBE, backend], capture_output=True,
-                           text=True, timeout=20, env=env)
-    except subprocess.TimeoutExpired as e:
-        return e.stdout.decode() if isinstance(e.stdout, bytes) else (e.stdout or "")
-    assert r.returncode == 0, r.stderr
-    return r.stdout
+        try:
+            started = lines.get(timeout=PROBE_START_S)
+        except queue.Empty:
+            started = None
+        if started != "probe started\n":
+            proc.kill()
+            proc.wait(10)
+            pytest.fail(f"the probe did not start: {started!r}, {proc.stderr.read()}")
+        try:
+            first = lines.get(timeout=FROZEN_S)
+        except queue.Empty:
+            return ""
+        assert proc.wait(timeout=10) == 0, proc.stderr.read()
+        reader.join(10)
+        return first + "".join(lines.get() for _ in range(lines.qsize()))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(10)
 
 
 def test_full_notify_queue_drops_the_message_and_never_stops_the_daemon():

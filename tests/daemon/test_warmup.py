@@ -26,6 +26,7 @@ def test_bad_config_is_one_line_and_exit_1(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_fills_the_cache_dir_the_daemon_loads_from(tmp_path):
     cache = tmp_path / "cache"
     r = warmup("--config", str(tmp_path / "absent.toml"), cache_dir=cache)  # absent: the defaults

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import itertools
-import os
 import socket
 
 import pytest
 
-# 14640+ keeps clear of PX4 SITL's 14540 block; the pid offset spreads parallel sessions apart.
-_BLOCKS = itertools.count(14640 + (os.getpid() % 40) * 25, 5)
+from tests.ports import process_slot
+
+# 14640+ keeps clear of PX4 SITL's 14540 block; the slot spreads parallel sessions and workers apart.
+_BLOCKS = itertools.count(14640 + process_slot(40) * 25, 5)
 
 
 def _block_is_free(base: int, size: int) -> bool:

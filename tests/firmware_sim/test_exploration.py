@@ -14,7 +14,8 @@ from firmware_sim.worlds import build_world
 
 QUICK = ("small_house", "bookstore")
 """Worlds whose two maps cast in about a second; the others are marked slow."""
-WORLDS = [w if w in QUICK else pytest.param(w, marks=pytest.mark.slow) for w in exploration.WORLDS]
+SLOW_WORLD = [pytest.mark.slow, pytest.mark.cpu_bound]
+WORLDS = [w if w in QUICK else pytest.param(w, marks=SLOW_WORLD) for w in exploration.WORLDS]
 
 
 @pytest.fixture(scope="module")

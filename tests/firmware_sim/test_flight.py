@@ -207,6 +207,7 @@ def test_crash_disarms(house):
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 @pytest.mark.parametrize("name", ["maze", "hospital"])
 def test_long_builtin_routes_fly_clean(name):
     world = build_world(name, seed=2)

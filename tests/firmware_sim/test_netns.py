@@ -38,13 +38,15 @@ def arrives(lab: NetnsLab, host: int, listener: socket.socket) -> bool:
 
 
 def test_fc_cable_and_radio_are_cut_separately():
-    lab = NetnsLab("coopdt-fc", "10.213.77", "10.215.77")
+    # .250: outside the /24s the swarm tests take in the root namespace (10.214/10.215 .2-.199), which
+    # may run at the same time on another pytest-xdist worker
+    lab = NetnsLab("coopdt-fc", "10.213.250", "10.215.250")
     radio = fc = None
     try:
         lab.add_host(1)
         root_radio = lab.attach_root()
         root_fc, host_fc = lab.add_fc_link(1)
-        assert lab.fc_addresses(1) == (root_fc, host_fc) == ("10.215.77.5", "10.215.77.6")
+        assert lab.fc_addresses(1) == (root_fc, host_fc) == ("10.215.250.5", "10.215.250.6")
         name = lab.fc_links[1]
         assert name.startswith(FC_LINK_PREFIX) and len(name) <= 15 and name in root_links()
         radio = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -18,10 +18,11 @@ from coopd.daemon.config import load_config
 from coopd.geometry import invert
 from firmware_sim.netns import netns_unavailable_reason
 from firmware_sim.swarm import NETNS_TAG, Swarm, SwarmSettings, render_config
+from tests.ports import process_slot
 
 ROOT = Path(__file__).resolve().parents[2]
-PORTS = 20200 + (os.getpid() % 20) * 20  # MAVLink ports from here, map servers on PORTS + 10
-NET = 2 + os.getpid() % 98  # this run's own swarm and FC networks (10.214.NET, 10.215.NET)
+PORTS = 20200 + process_slot(20) * 20  # MAVLink ports from here, map servers on PORTS + 10
+NET = 2 + process_slot(98)  # this run's own swarm and FC networks (10.214.NET, 10.215.NET)
 
 
 def our_namespaces() -> list[str]:

@@ -12,7 +12,6 @@ swarm converged within 0.3 m / 3 deg of the truth. Recovery times are printed.
 """
 
 import json
-import os
 import re
 import signal
 import time
@@ -22,13 +21,14 @@ import pytest
 from coopd.sharing.wire import decode_map
 from firmware_sim.netns import netns_unavailable_reason
 from firmware_sim.swarm import Swarm, SwarmSettings
+from tests.ports import process_slot
 
 REASON = netns_unavailable_reason()
 pytestmark = pytest.mark.slow
 needs_netns = pytest.mark.skipif(REASON is not None, reason=f"cutting links, a hostile host and a small disk "
                                  f"need network namespaces and root: {REASON}")
-PORTS = 22000 + (os.getpid() % 40) * 20  # MAVLink from here, map servers on PORTS + 10 (22000-22799)
-NET = 100 + os.getpid() % 100
+PORTS = 22000 + process_slot(40) * 20  # MAVLink from here, map servers on PORTS + 10 (22000-22799)
+NET = 100 + process_slot(100)
 KEY = b"swarm-fault-test-key-0123456789ab"
 MEMORY_MB = 768
 STATUS_S = 10.0  # a daemon that does not answer status within this is hung

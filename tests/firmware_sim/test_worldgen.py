@@ -119,6 +119,7 @@ def test_parse_spec_and_the_simulator_command_line():
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 @pytest.mark.parametrize("spec", ["gen:21:size=14x10,corridors=1,rooms=3,outdoor=0,clutter=1.5",
                                   "gen:22:size=16x12,outdoor=1,clutter=2"])
 def test_generated_worlds_fly_their_builtin_routes_clean(spec):

@@ -18,6 +18,9 @@ from coopd.sharing.wire import MapMeta
 from tests.synthetic_scenes import render_depth, room_scene, survey_poses
 
 octomap = pytest.importorskip("octomap")
+# The module's tests share two_drones (about 20 s to map): under pytest-xdist they run on one worker,
+# which builds it once, instead of each worker that takes one of them building it again.
+pytestmark = pytest.mark.xdist_group("octomap-two-drones")
 
 RES = 0.1
 

@@ -29,6 +29,7 @@ def _close(t, truth, m=0.3, deg=2.0):
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_good_hint_is_accepted_for_less_cpu_than_the_full_search(near_pair):
     full, cpu_full = _cpu(lambda: merge_all(near_pair.a, [near_pair.b]))
     assert full.results[0].accepted and full.results[0].method == "full" and full.full_registrations == 1
@@ -43,6 +44,7 @@ def test_good_hint_is_accepted_for_less_cpu_than_the_full_search(near_pair):
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 @pytest.mark.parametrize("shift, yaw_deg", [(2.0, 0.0), (0.0, 30.0), (3.0, 180.0)])
 def test_wrong_hint_is_refused_and_the_full_search_takes_over(near_pair, shift, yaw_deg):
     wrong = rigid(rotation_z(np.radians(yaw_deg)), [shift, 0.0, 0.0]) @ near_pair.a_from_b
@@ -53,6 +55,7 @@ def test_wrong_hint_is_refused_and_the_full_search_takes_over(near_pair, shift, 
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_hint_for_a_map_that_does_not_overlap_is_refused(far_pair):
     res = merge_all(far_pair.a, [far_pair.b], hints=[[Hint(far_pair.a_from_b, "peer")]])
     assert res.hints_refused == [1] and res.full_registrations == 1
@@ -69,6 +72,7 @@ def _truth(maps, i, j):
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_chained_hints_resolve_through_the_map_they_lean_on(chain):
     """Map 2 gets a hint relative to map 1 (a peer's T_12); it resolves once map 1 merged by its own
     hint (given first in the list but merged after, as the chaining needs)."""

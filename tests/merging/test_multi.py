@@ -31,6 +31,7 @@ def test_fusion_follows_table_3_under_a_transform():
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_region_inheritance_merges_a_map_that_only_overlaps_a_later_one(world):
     maps = make_chain(world, 3, [(6, 12.5), (12, 12.5), (18, 12.5)])
     assert known_overlap(maps[0], maps[2]) < 0.05 < known_overlap(maps[1], maps[2])

@@ -26,6 +26,7 @@ def test_merge_pair_rejects_maps_that_do_not_overlap(far_pair):
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_thesis_variant_runs_every_stage_and_validation_guards_it(near_pair):
     r = merge_pair(near_pair.a, near_pair.b, thesis_params())
     assert {"preprocess", "fast3d", "filter", "orientation", "describe", "match", "ransac"} <= set(r.timings)

@@ -13,7 +13,7 @@ from coopd.merging import coopd_params
 from coopd.merging.pair import judge, merge_prepared, prepare
 from firmware_sim import simset
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.cpu_bound]
 
 
 @pytest.fixture(scope="module", params=[("small_house", 2), ("racetrack", 1)], ids=lambda p: p[0])

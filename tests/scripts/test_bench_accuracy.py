@@ -66,6 +66,7 @@ def test_octree_grid_holds_octomap_cells_where_octomap_has_them():
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_replay_of_a_short_flight_scores_both_mappers():
     world = build_world("small_house", 1)
     cam = CameraConfig(width=80, height=60)

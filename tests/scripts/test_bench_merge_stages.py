@@ -15,6 +15,7 @@ spec.loader.exec_module(merge_stages)
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_the_kernels_agree_with_their_peers_and_report_ratios(tmp_path, monkeypatch):
     out = tmp_path / "merge_stages.json"
     monkeypatch.setattr(sys, "argv", ["merge_stages", "--world", "small_house", "--repeat", "1",

@@ -63,6 +63,7 @@ def test_repeatability_counts_keypoints_re_detected_within_two_cells_under_the_t
 
 
 @pytest.mark.slow
+@pytest.mark.cpu_bound
 def test_bounded_run_reports_every_pair_and_stage_and_its_truth_checks(tmp_path):
     out = tmp_path / "thesis.json"
     cache = tmp_path / "set"

@@ -27,7 +27,8 @@ def now_epoch() -> int:
     (versions.compose(now_epoch(), 3), versions.compose(now_epoch() - 50, 900_000), None),  # a restart
     (77, None, None),  # an older coopd: epoch 0
     (0, versions.compose(now_epoch(), 10), None),  # a thesis map: unversioned
-])
+], ids=["max", "an-hour-ahead", "epoch-back", "counter-jump", "counter-step", "restart", "epoch-0",
+        "unversioned"])  # ids without the clock's values: every pytest-xdist worker collects the same
 def test_plausible_versions(version, held, refused):
     why = versions.refusal(version, held)
     assert (why is None) if refused is None else (refused in why), why

@@ -1,6 +1,9 @@
 """Merge results (wire type 2) shared between two SharingService instances on loopback: delivered
 once per version, authenticated with the swarm key like maps, and refused when relayed or corrupt."""
 
+import contextlib
+import socket
+
 import numpy as np
 import pytest
 from sharing_support import failures, settings, wait_until
@@ -11,12 +14,22 @@ from coopd.sharing.service import SharingConfig, SharingService
 from coopd.sharing.transport import PeerLink
 
 KEY = b"swarm-key-for-results-0123456789"
-PORTS = (21150, 21151, 21152)
 
 
-def _service(vid, port, key=KEY, peers=()):
+@pytest.fixture
+def ports() -> tuple[int, int, int]:
+    """Three distinct loopback TCP ports the kernel just handed out (held open together while picked):
+    this test's services listen on them and scan exactly them for peers."""
+    with contextlib.ExitStack() as stack:
+        socks = [stack.enter_context(socket.socket()) for _ in range(3)]
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return tuple(s.getsockname()[1] for s in socks)
+
+
+def _service(vid, port, ports, key=KEY, peers=()):
     cfg = SharingConfig(vehicle_id=vid, listen_host="127.0.0.1", port=port, peers=tuple(peers),
-                        peer_ports=PORTS, scan_period=0.2, transport=settings(swarm_key=key))
+                        peer_ports=ports, scan_period=0.2, transport=settings(swarm_key=key))
     return SharingService(cfg)
 
 
@@ -33,10 +46,10 @@ def started():
         svc.stop()
 
 
-def test_results_reach_a_keyed_peer_once_per_version_and_a_wrong_key_gets_none(started):
-    a = _service(1, PORTS[0], peers=["127.0.0.1"])  # senders run on the scanning side
-    b = _service(2, PORTS[1], peers=["127.0.0.1"])
-    intruder = _service(3, PORTS[2], key=b"another-swarm-key-0123456789abcd", peers=["127.0.0.1"])
+def test_results_reach_a_keyed_peer_once_per_version_and_a_wrong_key_gets_none(started, ports):
+    a = _service(1, ports[0], ports, peers=["127.0.0.1"])  # senders run on the scanning side
+    b = _service(2, ports[1], ports, peers=["127.0.0.1"])
+    intruder = _service(3, ports[2], ports, key=b"another-swarm-key-0123456789abcd", peers=["127.0.0.1"])
     started += [a.start(), b.start(), intruder.start()]
     a.publish_result(_result(1, 1), 1)
     assert wait_until(lambda: b.results.version(1) == 1)
@@ -54,10 +67,10 @@ def test_results_reach_a_keyed_peer_once_per_version_and_a_wrong_key_gets_none(s
     assert intruder.results.all() == [] and a.results.all() == []  # nothing crossed the wrong key
 
 
-def test_relayed_or_corrupt_results_are_refused_and_counted(started):
-    a = _service(1, PORTS[0])
+def test_relayed_or_corrupt_results_are_refused_and_counted(started, ports):
+    a = _service(1, ports[0], ports)
     started.append(a.start())
-    link = PeerLink.connect("127.0.0.1", PORTS[0], settings(swarm_key=KEY), 5)
+    link = PeerLink.connect("127.0.0.1", ports[0], settings(swarm_key=KEY), 5)
     try:
         assert link.send_map(_result(7, 1))[0] == mtp.ACK_REJECTED  # vehicle 7's result sent by 5
     except (OSError, ValueError):
@@ -65,7 +78,7 @@ def test_relayed_or_corrupt_results_are_refused_and_counted(started):
     link.close()
     corrupt = bytearray(_result(5, 1))
     corrupt[-10] ^= 0xFF  # edge bytes changed: the CRC no longer matches
-    link = PeerLink.connect("127.0.0.1", PORTS[0], settings(swarm_key=KEY), 5)
+    link = PeerLink.connect("127.0.0.1", ports[0], settings(swarm_key=KEY), 5)
     try:
         assert link.send_map(bytes(corrupt))[0] == mtp.ACK_REJECTED
     except (OSError, ValueError):
@@ -74,7 +87,7 @@ def test_relayed_or_corrupt_results_are_refused_and_counted(started):
     assert wait_until(lambda: failures(a).get("relayed_result") == 1 and failures(a).get("decode") == 1), \
         failures(a)
     assert a.results.all() == []
-    link = PeerLink.connect("127.0.0.1", PORTS[0], settings(swarm_key=KEY), 5)
+    link = PeerLink.connect("127.0.0.1", ports[0], settings(swarm_key=KEY), 5)
     assert link.send_map(_result(5, 1))[0] == mtp.ACK_OK
     assert link.send_map(_result(5, 1))[0] == mtp.ACK_STALE
     link.close()

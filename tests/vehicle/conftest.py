@@ -1,11 +1,12 @@
 """Vehicle-test setup: a loopback UDP port block of our own (15100-15199)."""
 
 import itertools
-import os
 
 import pytest
 
-_PORTS = itertools.count(15100 + (os.getpid() % 2) * 50, 2)  # two ports per test (multi-vehicle)
+from tests.ports import process_slot
+
+_PORTS = itertools.count(15100 + process_slot(2) * 50, 2)  # two ports per test (multi-vehicle)
 
 
 @pytest.fixture
