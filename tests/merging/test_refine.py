@@ -5,6 +5,7 @@ import pytest
 
 from coopd.geometry import apply, euler_to_matrix, invert, rigid, rotation_angle_deg, rotation_z
 from coopd.grid import transform_grid
+from coopd.merging import refine
 from coopd.merging.refine import FIELD_SCALE, SIDES, OccupiedCells, facing_fields, field_fit, free_sides, icp
 
 
@@ -150,10 +151,26 @@ def test_nearest_occupied_cell_is_as_near_as_a_kd_tree_finds(near_pair):
     lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
     near_walls = centres[::50] + rng.normal(0.0, 0.07, (len(centres[::50]), 3))
     points = np.concatenate([rng.uniform(lo, hi, (3000, 3)), near_walls])
-    for radius in (0.15, 0.6):
+    for radius in (0.15, 0.6, 1.2):
         within, nearest = _target(a).nearest(points, radius)
         d_ref, _ = cKDTree(centres).query(points, distance_upper_bound=radius)
         assert np.array_equal(within, np.isfinite(d_ref))
         d = np.linalg.norm(nearest[within] - points[within], axis=1)
         np.testing.assert_allclose(d, d_ref[within], atol=1e-9)
         assert within.sum() > 500
+
+
+def testcube_counts_from_the_wrapping_prefix_sums_are_exact():
+    """The shell search skips a shell when its cube holds no occupied cell: the count of any cube up
+    to MAX_CUBE_HALF, clipped at the grid's faces or wholly outside, is the brute-force count, also
+    where the uint16 prefix sums wrapped (a full grid of 60^3 cells)."""
+    rng = np.random.default_rng(5)
+    for occupied in (rng.random((23, 31, 17)) < 0.03, np.ones((60, 60, 60), dtype=bool)):
+        sums = refine.occupied_sums(occupied)
+        for _ in range(300):
+            centre = rng.integers(-25, np.array(occupied.shape) + 25)
+            half = int(rng.integers(0, refine.MAX_CUBE_HALF + 1))
+            lo = np.maximum(centre - half, 0)
+            hi = np.maximum(np.minimum(centre + half + 1, occupied.shape), lo)
+            want = int(occupied[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].sum())
+            assert refine.cube_count(sums, *(int(c) for c in centre), half) == want
