@@ -21,7 +21,7 @@ import numpy as np
 from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
 from ..geometry import apply
-from .mtm import estimate
+from .mtm import kabsch, kabsch_yaw
 
 _JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
@@ -134,28 +134,77 @@ class OccupiedCells:
         return np.isfinite(dist), (idx + self.offset) * self.resolution
 
 
+@nb.njit(**_JIT)
+def _icp_step(occupied, sums, offset, resolution, source, moved, max_cells, yaw_only, idx, dist, previous,
+              has_previous, min_pairs):
+    """One ICP step: the nearest occupied cell of each moved point within max_cells, then (count of
+    points with one, same pairs as `previous`, the rigid fit of those pairs). The fit is computed only
+    when there are at least min_pairs pairs and they changed; previous (the last pairs' cells, -1 rows
+    for points without one) is updated then."""
+    _nearest_cells(occupied, sums, offset, moved, 1.0 / resolution, max_cells, idx, dist)
+    n = 0
+    same = has_previous
+    for p in range(moved.shape[0]):
+        within = np.isfinite(dist[p])
+        n += within
+        for a in range(3):
+            cell = idx[p, a] if within else -1
+            if previous[p, a] != cell:
+                same = False
+    t = np.eye(4)
+    if n < min_pairs or same:
+        return n, same, t
+    src = np.empty((n, 3))
+    dst = np.empty((n, 3))
+    k = 0
+    for p in range(moved.shape[0]):
+        within = np.isfinite(dist[p])
+        for a in range(3):
+            previous[p, a] = idx[p, a] if within else -1
+        if within:
+            for a in range(3):
+                src[k, a] = source[p, a]
+                dst[k, a] = (idx[p, a] + offset[a]) * resolution
+            k += 1
+    t = kabsch_yaw(src, dst) if yaw_only else kabsch(src, dst)
+    return n, same, t
+
+
+ICP_MIN_PAIRS = 10
+"""ICP stops when fewer points than this have a partner within the radius."""
+
+
 def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: int,
         yaw_only: bool = False) -> tuple[np.ndarray, float]:
     """(refined T, inlier fraction): source points (b frame) pulled onto the target's occupied cell
-    centres (a frame)."""
+    centres (a frame). Each step pairs every point with the nearest centre within a radius that
+    shrinks from 6 to 1.5 cells over the first half of the steps and is then held; unchanged pairs
+    skip the fit, and end the refinement under the held radius (every further step would repeat)."""
     t = np.asarray(t0, dtype=np.float64).copy()
     coarse = max(1, iterations // 2)
     held = np.full(max(0, iterations - coarse), 1.5)
     radii = np.concatenate([np.geomspace(6.0, 1.5, coarse), held]) * target.resolution
+    points = np.ascontiguousarray(source, dtype=np.float64)
+    offset = np.asarray(target.offset, dtype=np.int64)
+    idx = np.empty((len(source), 3), dtype=np.int64)
+    dist = np.empty(len(source))
+    previous = np.empty((len(source), 3), dtype=np.int64)
     frac = 0.0
-    previous = None
+    has_previous = False
     for k, r in enumerate(radii):
-        ok, nearest = target.nearest(apply(t, source), r)
-        frac = float(ok.mean()) if len(ok) else 0.0
-        if ok.sum() < 10:
+        moved = np.ascontiguousarray(apply(t, source))
+        n, same, fitted = _icp_step(target.occupied, target.sums, offset, float(target.resolution), points,
+                                    moved, r / target.resolution, yaw_only, idx, dist, previous,
+                                    has_previous, ICP_MIN_PAIRS)
+        frac = n / len(source) if len(source) else 0.0
+        if n < ICP_MIN_PAIRS:
             break
-        pairs = np.where(ok[:, None], nearest, np.nan)
-        if previous is not None and np.array_equal(pairs, previous, equal_nan=True):
+        if same:
             if k >= coarse:  # same pairs under the held radius: every further step repeats this one
                 break
             continue  # same pairs, same estimate
-        previous = pairs
-        t = estimate(source[ok], nearest[ok], yaw_only)
+        has_previous = True
+        t = fitted
     return t, frac
 
 
