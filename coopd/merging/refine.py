@@ -42,11 +42,12 @@ def cube_count(sums, cx, cy, cz, s):
 
 
 @nb.njit(**_JIT)
-def _nearest_cells(occupied, sums, offset, points, inv_res, max_cells, out_idx, out_dist):
+def _nearest_cells(occupied, sums, columns, offset, points, inv_res, max_cells, out_idx, out_dist):
     """Nearest occupied cell of each point (cell-index units) within max_cells, searched in shells of
     growing Chebyshev radius around the point's cell until no farther shell can hold a nearer one.
     Until a first occupied cell is met, a shell whose whole cube is empty (prefix sums) is skipped
-    unvisited: the same answer, without walking the empty space around points outside the overlap."""
+    unvisited, and so is every column of a shell's side that holds no occupied cell in its z range
+    (column bits): the same answer, in the same order, without walking empty space cell by cell."""
     mx, my, mz = occupied.shape
     for p in range(points.shape[0]):
         kx = points[p, 0] * inv_res - offset[0]
@@ -72,6 +73,8 @@ def _nearest_cells(occupied, sums, offset, points, inv_res, max_cells, out_idx, 
                     if y < 0 or y >= my:
                         continue
                     edge = dx == -s or dx == s or dy == -s or dy == s
+                    if edge and not column_holds(columns, x, y, cz - s, cz + s):
+                        continue
                     step = 1 if edge else max(1, 2 * s)
                     for dz in range(-s, s + 1, step):
                         z = cz + dz
@@ -86,6 +89,37 @@ def _nearest_cells(occupied, sums, offset, points, inv_res, max_cells, out_idx, 
             out_idx[p, 0], out_idx[p, 1], out_idx[p, 2] = bx, by, bz
         else:
             out_dist[p] = np.inf
+
+
+@nb.njit(**_JIT)
+def column_bits(occupied):
+    """(mx, my, words) uint64: bit z % 64 of word z // 64 says whether cell (x, y, z) is occupied."""
+    mx, my, mz = occupied.shape
+    bits = np.zeros((mx, my, max(1, (mz + 63) // 64)), dtype=np.uint64)
+    for x in range(mx):
+        for y in range(my):
+            for z in range(mz):
+                if occupied[x, y, z]:
+                    bits[x, y, z // 64] |= np.uint64(1) << np.uint64(z % 64)
+    return bits
+
+
+@nb.njit(**_JIT)
+def column_holds(bits, x, y, z0, z1):
+    """Whether column (x, y) of column_bits holds an occupied cell with z0 <= z <= z1 (clipped)."""
+    z0 = max(z0, 0)
+    z1 = min(z1, bits.shape[2] * 64 - 1)
+    if z0 > z1:
+        return False
+    for w in range(z0 // 64, z1 // 64 + 1):
+        lo = max(z0 - 64 * w, 0)
+        hi = min(z1 - 64 * w, 63)
+        below_hi = np.uint64(0xFFFFFFFFFFFFFFFF) >> np.uint64(63 - hi)
+        below_lo = (np.uint64(1) << np.uint64(lo)) - np.uint64(1)
+        mask = below_hi & ~below_lo
+        if bits[x, y, w] & mask:
+            return True
+    return False
 
 
 MAX_CUBE_HALF = 19
@@ -123,25 +157,30 @@ class OccupiedCells:
         """occupied_sums of the occupied cells, made on the first query (2 bytes a cell)."""
         return occupied_sums(self.occupied)
 
+    @cached_property
+    def columns(self) -> np.ndarray:
+        """column_bits of the occupied cells, made on the first query (a bit a cell)."""
+        return column_bits(self.occupied)
+
     def nearest(self, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """(within, centres): which points have an occupied cell centre within radius (metres), and
         the nearest such centre of each (rows of the others are undefined)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         idx = np.empty((len(points), 3), dtype=np.int64)
         dist = np.empty(len(points))
-        _nearest_cells(self.occupied, self.sums, np.asarray(self.offset, dtype=np.int64), points,
-                       1.0 / self.resolution, radius / self.resolution, idx, dist)
+        _nearest_cells(self.occupied, self.sums, self.columns, np.asarray(self.offset, dtype=np.int64),
+                       points, 1.0 / self.resolution, radius / self.resolution, idx, dist)
         return np.isfinite(dist), (idx + self.offset) * self.resolution
 
 
 @nb.njit(**_JIT)
-def _icp_step(occupied, sums, offset, resolution, source, moved, max_cells, yaw_only, idx, dist, previous,
-              has_previous, min_pairs):
+def _icp_step(occupied, sums, columns, offset, resolution, source, moved, max_cells, yaw_only, idx, dist,
+              previous, has_previous, min_pairs):
     """One ICP step: the nearest occupied cell of each moved point within max_cells, then (count of
     points with one, same pairs as `previous`, the rigid fit of those pairs). The fit is computed only
     when there are at least min_pairs pairs and they changed; previous (the last pairs' cells, -1 rows
     for points without one) is updated then."""
-    _nearest_cells(occupied, sums, offset, moved, 1.0 / resolution, max_cells, idx, dist)
+    _nearest_cells(occupied, sums, columns, offset, moved, 1.0 / resolution, max_cells, idx, dist)
     n = 0
     same = has_previous
     for p in range(moved.shape[0]):
@@ -193,9 +232,9 @@ def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: i
     has_previous = False
     for k, r in enumerate(radii):
         moved = np.ascontiguousarray(apply(t, source))
-        n, same, fitted = _icp_step(target.occupied, target.sums, offset, float(target.resolution), points,
-                                    moved, r / target.resolution, yaw_only, idx, dist, previous,
-                                    has_previous, ICP_MIN_PAIRS)
+        n, same, fitted = _icp_step(target.occupied, target.sums, target.columns, offset,
+                                    float(target.resolution), points, moved, r / target.resolution, yaw_only,
+                                    idx, dist, previous, has_previous, ICP_MIN_PAIRS)
         frac = n / len(source) if len(source) else 0.0
         if n < ICP_MIN_PAIRS:
             break

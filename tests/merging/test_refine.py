@@ -210,3 +210,36 @@ def test_icp_steps_are_the_plain_algorithms_to_the_bit(near_pair):
     t_ref, frac_ref = _reference_icp(_target(a), src, start, 28)
     assert np.array_equal(t, t_ref) and frac == frac_ref
     assert rotation_angle_deg(t[:3, :3].T @ near_pair.a_from_b[:3, :3]) < 1.0
+
+
+def test_column_bits_answer_every_z_range_as_the_cells_do():
+    """column_holds reads whether a column holds an occupied cell between two heights from the bits,
+    across 64-bit words (a grid 150 cells tall) and clipped at the grid's bottom and top."""
+    rng = np.random.default_rng(6)
+    occupied = rng.random((5, 4, 150)) < 0.01
+    bits = refine.column_bits(occupied)
+    for _ in range(2000):
+        x, y = int(rng.integers(0, 5)), int(rng.integers(0, 4))
+        z0 = int(rng.integers(-10, 160))
+        z1 = z0 + int(rng.integers(0, 80))
+        want = bool(occupied[x, y, max(z0, 0):max(min(z1 + 1, 150), 0)].any())
+        assert refine.column_holds(bits, x, y, z0, z1) == want
+
+
+def test_nearest_occupied_cell_in_a_tall_sparse_grid_is_the_exact_nearest():
+    """The shell search with its skips (empty cubes, empty columns) on a grid taller than one word of
+    column bits: the nearest centre within the radius, as a k-d tree finds it."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(8)
+    occupied = rng.random((30, 25, 140)) < 0.004
+    offset = np.array([-7, 3, -60])
+    target = OccupiedCells(occupied, offset, 0.1)
+    centres = (np.argwhere(occupied) + offset) * 0.1
+    points = rng.uniform(centres.min(axis=0) - 0.5, centres.max(axis=0) + 0.5, (4000, 3))
+    for radius in (0.15, 0.6):
+        within, nearest = target.nearest(points, radius)
+        d_ref, _ = cKDTree(centres).query(points, distance_upper_bound=radius)
+        assert np.array_equal(within, np.isfinite(d_ref)) and within.sum() > 100
+        np.testing.assert_allclose(np.linalg.norm(nearest[within] - points[within], axis=1), d_ref[within],
+                                   atol=1e-9)
