@@ -29,7 +29,7 @@ _JIT = {"nogil": True, "cache": KERNEL_CACHE}
 @nb.njit(**_JIT)
 def cube_count(sums, cx, cy, cz, s):
     """Occupied cells in the cube of half-size s around cell (cx, cy, cz), clipped to the grid, from
-    the wrapping uint16 prefix sums of occupied_sums (exact: the cube holds fewer than 2^16 cells)."""
+    the wrapping uint16 prefix sums of search_index (exact: the cube holds fewer than 2^16 cells)."""
     mx, my, mz = sums.shape[0] - 1, sums.shape[1] - 1, sums.shape[2] - 1
     x0, y0, z0 = max(cx - s, 0), max(cy - s, 0), max(cz - s, 0)
     x1, y1, z1 = min(cx + s + 1, mx), min(cy + s + 1, my), min(cz + s + 1, mz)
@@ -92,21 +92,8 @@ def _nearest_cells(occupied, sums, columns, offset, points, inv_res, max_cells, 
 
 
 @nb.njit(**_JIT)
-def column_bits(occupied):
-    """(mx, my, words) uint64: bit z % 64 of word z // 64 says whether cell (x, y, z) is occupied."""
-    mx, my, mz = occupied.shape
-    bits = np.zeros((mx, my, max(1, (mz + 63) // 64)), dtype=np.uint64)
-    for x in range(mx):
-        for y in range(my):
-            for z in range(mz):
-                if occupied[x, y, z]:
-                    bits[x, y, z // 64] |= np.uint64(1) << np.uint64(z % 64)
-    return bits
-
-
-@nb.njit(**_JIT)
 def column_holds(bits, x, y, z0, z1):
-    """Whether column (x, y) of column_bits holds an occupied cell with z0 <= z <= z1 (clipped)."""
+    """Whether column (x, y) of search_index's bits holds an occupied cell with z0 <= z <= z1 (clipped)."""
     z0 = max(z0, 0)
     z1 = min(z1, bits.shape[2] * 64 - 1)
     if z0 > z1:
@@ -127,19 +114,25 @@ MAX_CUBE_HALF = 19
 
 
 @nb.njit(**_JIT)
-def occupied_sums(occupied):
-    """Prefix sums (shape + 1 per axis, uint16 wrapping) of a 3-D mask: any box's count by
-    inclusion-exclusion, exact modulo 2^16. One pass, each slice's sums built on the previous one's."""
+def search_index(occupied):
+    """What the nearest-cell search skips empty space with, from one scan of a 3-D mask:
+    - prefix sums (shape + 1 per axis, uint16 wrapping): any box's count by inclusion-exclusion,
+      exact modulo 2^16 (cube_count), each slice's sums built on the previous one's;
+    - column bits (mx, my, words) uint64: bit z % 64 of word z // 64 says whether (x, y, z) is
+      occupied (column_holds)."""
     mx, my, mz = occupied.shape
     sums = np.zeros((mx + 1, my + 1, mz + 1), dtype=np.uint16)
+    bits = np.zeros((mx, my, max(1, (mz + 63) // 64)), dtype=np.uint64)
     for x in range(mx):
         for y in range(my):
             row = 0
             for z in range(mz):
-                row += occupied[x, y, z]
+                if occupied[x, y, z]:
+                    row += 1
+                    bits[x, y, z // 64] |= np.uint64(1) << np.uint64(z % 64)
                 below = sums[x, y + 1, z + 1] + sums[x + 1, y, z + 1] - sums[x, y, z + 1]
                 sums[x + 1, y + 1, z + 1] = below + row
-    return sums
+    return sums, bits
 
 
 @dataclass(frozen=True)
@@ -153,14 +146,9 @@ class OccupiedCells:
     resolution: float
 
     @cached_property
-    def sums(self) -> np.ndarray:
-        """occupied_sums of the occupied cells, made on the first query (2 bytes a cell)."""
-        return occupied_sums(self.occupied)
-
-    @cached_property
-    def columns(self) -> np.ndarray:
-        """column_bits of the occupied cells, made on the first query (a bit a cell)."""
-        return column_bits(self.occupied)
+    def index(self) -> tuple[np.ndarray, np.ndarray]:
+        """search_index of the occupied cells, made on the first query (2 bytes and a bit a cell)."""
+        return search_index(self.occupied)
 
     def nearest(self, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """(within, centres): which points have an occupied cell centre within radius (metres), and
@@ -168,8 +156,8 @@ class OccupiedCells:
         points = np.ascontiguousarray(points, dtype=np.float64)
         idx = np.empty((len(points), 3), dtype=np.int64)
         dist = np.empty(len(points))
-        _nearest_cells(self.occupied, self.sums, self.columns, np.asarray(self.offset, dtype=np.int64),
-                       points, 1.0 / self.resolution, radius / self.resolution, idx, dist)
+        _nearest_cells(self.occupied, *self.index, np.asarray(self.offset, dtype=np.int64), points,
+                       1.0 / self.resolution, radius / self.resolution, idx, dist)
         return np.isfinite(dist), (idx + self.offset) * self.resolution
 
 
@@ -232,7 +220,7 @@ def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: i
     has_previous = False
     for k, r in enumerate(radii):
         moved = np.ascontiguousarray(apply(t, source))
-        n, same, fitted = _icp_step(target.occupied, target.sums, target.columns, offset,
+        n, same, fitted = _icp_step(target.occupied, *target.index, offset,
                                     float(target.resolution), points, moved, r / target.resolution, yaw_only,
                                     idx, dist, previous, has_previous, ICP_MIN_PAIRS)
         frac = n / len(source) if len(source) else 0.0

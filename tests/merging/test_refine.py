@@ -166,7 +166,7 @@ def testcube_counts_from_the_wrapping_prefix_sums_are_exact():
     where the uint16 prefix sums wrapped (a full grid of 60^3 cells)."""
     rng = np.random.default_rng(5)
     for occupied in (rng.random((23, 31, 17)) < 0.03, np.ones((60, 60, 60), dtype=bool)):
-        sums = refine.occupied_sums(occupied)
+        sums, _ = refine.search_index(occupied)
         for _ in range(300):
             centre = rng.integers(-25, np.array(occupied.shape) + 25)
             half = int(rng.integers(0, refine.MAX_CUBE_HALF + 1))
@@ -217,7 +217,7 @@ def test_column_bits_answer_every_z_range_as_the_cells_do():
     across 64-bit words (a grid 150 cells tall) and clipped at the grid's bottom and top."""
     rng = np.random.default_rng(6)
     occupied = rng.random((5, 4, 150)) < 0.01
-    bits = refine.column_bits(occupied)
+    _, bits = refine.search_index(occupied)
     for _ in range(2000):
         x, y = int(rng.integers(0, 5)), int(rng.integers(0, 4))
         z0 = int(rng.integers(-10, 160))
