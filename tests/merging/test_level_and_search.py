@@ -31,6 +31,17 @@ def test_yaw_search_puts_the_true_alignment_first(near_pair):
     assert np.linalg.norm(best[:2, 3] - truth[:2, 3]) < 0.8
 
 
+def test_a_limited_search_returns_the_first_peaks_of_the_full_one(near_pair):
+    """search(limit=k) makes transforms for the k strongest peaks only: the same k, in the same order,
+    as the head of the full list."""
+    found = yaw_search.search(near_pair.a, near_pair.b, coopd_params())
+    head = yaw_search.search(near_pair.a, near_pair.b, coopd_params(), 6)
+    assert len(head) == 6
+    for (s, t), (s_head, t_head) in zip(found[:6], head, strict=True):
+        assert s == s_head and np.array_equal(t, t_head)
+    assert [s for s, _ in found] == sorted((s for s, _ in found), reverse=True)
+
+
 def test_fft_lengths_are_the_smallest_5_smooth_lengths_not_below_n():
     def smooth(m):
         for p in (2, 3, 5):
