@@ -88,12 +88,10 @@ def _clear_near_walls(free, walls):
     nx, ny = free.shape
     for x in range(nx):
         for y in range(ny):
-            if free[x, y] == 0:
-                continue
-            for a in range(max(0, x - 1), min(nx, x + 2)):
-                for b in range(max(0, y - 1), min(ny, y + 2)):
-                    if walls[a, b] > 0:
-                        free[x, y] = 0
+            if walls[x, y] > 0:  # walls are few: clear around each, rather than search around each free pixel
+                for a in range(max(0, x - 1), min(nx, x + 2)):
+                    for b in range(max(0, y - 1), min(ny, y + 2)):
+                        free[a, b] = 0
 
 
 def _images(view: TopView, yaw: float, origin: np.ndarray, cell: float, n: tuple):

@@ -42,6 +42,21 @@ def test_a_limited_search_returns_the_first_peaks_of_the_full_one(near_pair):
     assert [s for s, _ in found] == sorted((s for s, _ in found), reverse=True)
 
 
+def test_free_pixels_next_to_a_wall_pixel_are_cleared():
+    """A free pixel within one pixel (8-neighbourhood, the image's border included) of a wall pixel
+    does not count: the wall's own pixel holds the free columns in front of it."""
+    rng = np.random.default_rng(2)
+    walls = (rng.random((40, 33)) < 0.03).astype(np.float32)
+    free = (rng.random((40, 33)) < 0.5).astype(np.float32)
+    near = np.zeros((42, 35), dtype=bool)
+    for dx in range(3):
+        for dy in range(3):
+            near[dx:dx + 40, dy:dy + 33] |= walls > 0
+    want = np.where(near[1:41, 1:34], 0.0, free)
+    yaw_search._clear_near_walls(free, walls)
+    assert np.array_equal(free, want) and free.sum() > 100
+
+
 def test_fft_lengths_are_the_smallest_5_smooth_lengths_not_below_n():
     def smooth(m):
         for p in (2, 3, 5):
