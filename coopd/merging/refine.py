@@ -21,7 +21,7 @@ import numpy as np
 from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
 from ..geometry import apply
-from .mtm import kabsch, kabsch_yaw
+from .mtm import kabsch
 
 _JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
@@ -162,8 +162,8 @@ class OccupiedCells:
 
 
 @nb.njit(**_JIT)
-def _icp_step(occupied, sums, columns, offset, resolution, source, moved, max_cells, yaw_only, idx, dist,
-              previous, has_previous, min_pairs):
+def _icp_step(occupied, sums, columns, offset, resolution, source, moved, max_cells, idx, dist, previous,
+              has_previous, min_pairs):
     """One ICP step: the nearest occupied cell of each moved point within max_cells, then (count of
     points with one, same pairs as `previous`, the rigid fit of those pairs). The fit is computed only
     when there are at least min_pairs pairs and they changed; previous (the last pairs' cells, -1 rows
@@ -193,16 +193,15 @@ def _icp_step(occupied, sums, columns, offset, resolution, source, moved, max_ce
                 src[k, a] = source[p, a]
                 dst[k, a] = (idx[p, a] + offset[a]) * resolution
             k += 1
-    t = kabsch_yaw(src, dst) if yaw_only else kabsch(src, dst)
-    return n, same, t
+    return n, same, kabsch(src, dst)
 
 
 ICP_MIN_PAIRS = 10
 """ICP stops when fewer points than this have a partner within the radius."""
 
 
-def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: int,
-        yaw_only: bool = False) -> tuple[np.ndarray, float]:
+def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray,
+        iterations: int) -> tuple[np.ndarray, float]:
     """(refined T, inlier fraction): source points (b frame) pulled onto the target's occupied cell
     centres (a frame). Each step pairs every point with the nearest centre within a radius that
     shrinks from 6 to 1.5 cells over the first half of the steps and is then held; unchanged pairs
@@ -221,8 +220,8 @@ def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: i
     for k, r in enumerate(radii):
         moved = np.ascontiguousarray(apply(t, source))
         n, same, fitted = _icp_step(target.occupied, *target.index, offset,
-                                    float(target.resolution), points, moved, r / target.resolution, yaw_only,
-                                    idx, dist, previous, has_previous, ICP_MIN_PAIRS)
+                                    float(target.resolution), points, moved, r / target.resolution, idx, dist,
+                                    previous, has_previous, ICP_MIN_PAIRS)
         frac = n / len(source) if len(source) else 0.0
         if n < ICP_MIN_PAIRS:
             break
