@@ -204,7 +204,7 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
         t0 = time.perf_counter()
         la = a.level if a.level is not None else np.eye(4)
         lb = b.level if b.level is not None else np.eye(4)
-        found = yaw_search.search(a.levelled, b.levelled, params)[: params.search_candidates]
+        found = yaw_search.search(a.levelled, b.levelled, params, params.search_candidates)
         cands += [Candidate(invert(la) @ t @ lb, 0, "search") for _, t in found]
         tm["search"] = time.perf_counter() - t0
     if params.hypotheses > 0:

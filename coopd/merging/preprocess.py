@@ -156,15 +156,17 @@ def preprocess(grid: OccupancyGrid, params: MergeParams) -> FeatureImage:
 
 @nb.njit(**_JIT)
 def _speckles(cells, threshold, max_occupied):
-    """Mask of occupied cells with at most max_occupied occupied neighbours (of 26) and more free
-    neighbours than unknown ones."""
+    """(mask of occupied cells with at most max_occupied occupied neighbours (of 26) and more free
+    neighbours than unknown ones, how many there are, how many cells are occupied)."""
     mx, my, mz = cells.shape
     out = np.zeros(cells.shape, dtype=np.bool_)
+    speckles = occupied = 0
     for x in range(mx):
         for y in range(my):
             for z in range(mz):
                 if cells[x, y, z] < threshold:
                     continue
+                occupied += 1
                 occ = -1
                 free = 0
                 unknown = 26 - (min(mx, x + 2) - max(0, x - 1)) * (min(my, y + 2) - max(0, y - 1)) \
@@ -180,7 +182,8 @@ def _speckles(cells, threshold, max_occupied):
                             else:
                                 unknown += 1
                 out[x, y, z] = occ <= max_occupied and free > unknown
-    return out
+                speckles += out[x, y, z]
+    return out, speckles, occupied
 
 
 def despeckle(grid: OccupancyGrid, params: MergeParams) -> OccupancyGrid:
@@ -195,14 +198,13 @@ def despeckle(grid: OccupancyGrid, params: MergeParams) -> OccupancyGrid:
     is removed."""
     if params.despeckle_max_occupied < 0:
         return grid
-    drop = _speckles(grid.cells, params.occupied_threshold, params.despeckle_max_occupied)
-    occupied = int((grid.cells >= params.occupied_threshold).sum())
-    if not drop.any() or drop.sum() < params.despeckle_min_share * occupied:
+    drop, speckles, occupied = _speckles(grid.cells, params.occupied_threshold, params.despeckle_max_occupied)
+    if not speckles or speckles < params.despeckle_min_share * occupied:
         return grid
     cells = grid.cells.copy()
     for _ in range(params.despeckle_passes):
         cells[drop] = -1
-        drop = _speckles(cells, params.occupied_threshold, params.despeckle_max_occupied)
-        if not drop.any():
+        drop, speckles, _ = _speckles(cells, params.occupied_threshold, params.despeckle_max_occupied)
+        if not speckles:
             break
     return OccupancyGrid(cells, grid.resolution, grid.offset)

@@ -13,6 +13,7 @@ never pair.
 """
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba as nb
 import numpy as np
@@ -20,15 +21,33 @@ import numpy as np
 from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
 from ..geometry import apply
-from .mtm import estimate
+from .mtm import kabsch
 
 _JIT = {"nogil": True, "cache": KERNEL_CACHE}
 
 
 @nb.njit(**_JIT)
-def _nearest_cells(occupied, offset, points, inv_res, max_cells, out_idx, out_dist):
+def cube_count(sums, cx, cy, cz, s):
+    """Occupied cells in the cube of half-size s around cell (cx, cy, cz), clipped to the grid, from
+    the wrapping uint16 prefix sums of search_index (exact: the cube holds fewer than 2^16 cells)."""
+    mx, my, mz = sums.shape[0] - 1, sums.shape[1] - 1, sums.shape[2] - 1
+    x0, y0, z0 = max(cx - s, 0), max(cy - s, 0), max(cz - s, 0)
+    x1, y1, z1 = min(cx + s + 1, mx), min(cy + s + 1, my), min(cz + s + 1, mz)
+    if x0 >= x1 or y0 >= y1 or z0 >= z1:
+        return 0
+    total = (np.int64(sums[x1, y1, z1]) - np.int64(sums[x0, y1, z1]) - np.int64(sums[x1, y0, z1])
+             - np.int64(sums[x1, y1, z0]) + np.int64(sums[x0, y0, z1]) + np.int64(sums[x0, y1, z0])
+             + np.int64(sums[x1, y0, z0]) - np.int64(sums[x0, y0, z0]))
+    return total & 0xFFFF
+
+
+@nb.njit(**_JIT)
+def _nearest_cells(occupied, sums, columns, offset, points, inv_res, max_cells, out_idx, out_dist):
     """Nearest occupied cell of each point (cell-index units) within max_cells, searched in shells of
-    growing Chebyshev radius around the point's cell until no farther shell can hold a nearer one."""
+    growing Chebyshev radius around the point's cell until no farther shell can hold a nearer one.
+    Until a first occupied cell is met, a shell whose whole cube is empty (prefix sums) is skipped
+    unvisited, and so is every column of a shell's side that holds no occupied cell in its z range
+    (column bits): the same answer, in the same order, without walking empty space cell by cell."""
     mx, my, mz = occupied.shape
     for p in range(points.shape[0]):
         kx = points[p, 0] * inv_res - offset[0]
@@ -42,6 +61,9 @@ def _nearest_cells(occupied, offset, points, inv_res, max_cells, out_idx, out_di
             bound = max(0.0, s - 0.5)  # the point lies within half a cell of its cell's centre
             if bound > max_cells or bound * bound >= best:
                 break
+            if best == np.inf and s <= MAX_CUBE_HALF and cube_count(sums, cx, cy, cz, s) == 0:
+                s += 1
+                continue
             for dx in range(-s, s + 1):
                 x = cx + dx
                 if x < 0 or x >= mx:
@@ -51,6 +73,8 @@ def _nearest_cells(occupied, offset, points, inv_res, max_cells, out_idx, out_di
                     if y < 0 or y >= my:
                         continue
                     edge = dx == -s or dx == s or dy == -s or dy == s
+                    if edge and not column_holds(columns, x, y, cz - s, cz + s):
+                        continue
                     step = 1 if edge else max(1, 2 * s)
                     for dz in range(-s, s + 1, step):
                         z = cz + dz
@@ -67,6 +91,50 @@ def _nearest_cells(occupied, offset, points, inv_res, max_cells, out_idx, out_di
             out_dist[p] = np.inf
 
 
+@nb.njit(**_JIT)
+def column_holds(bits, x, y, z0, z1):
+    """Whether column (x, y) of search_index's bits holds an occupied cell with z0 <= z <= z1 (clipped)."""
+    z0 = max(z0, 0)
+    z1 = min(z1, bits.shape[2] * 64 - 1)
+    if z0 > z1:
+        return False
+    for w in range(z0 // 64, z1 // 64 + 1):
+        lo = max(z0 - 64 * w, 0)
+        hi = min(z1 - 64 * w, 63)
+        below_hi = np.uint64(0xFFFFFFFFFFFFFFFF) >> np.uint64(63 - hi)
+        below_lo = (np.uint64(1) << np.uint64(lo)) - np.uint64(1)
+        mask = below_hi & ~below_lo
+        if bits[x, y, w] & mask:
+            return True
+    return False
+
+
+MAX_CUBE_HALF = 19
+"""Largest half-size of a cube counted by cube_count: (2 * 19 + 1)^3 < 2^16 cells."""
+
+
+@nb.njit(**_JIT)
+def search_index(occupied):
+    """What the nearest-cell search skips empty space with, from one scan of a 3-D mask:
+    - prefix sums (shape + 1 per axis, uint16 wrapping): any box's count by inclusion-exclusion,
+      exact modulo 2^16 (cube_count), each slice's sums built on the previous one's;
+    - column bits (mx, my, words) uint64: bit z % 64 of word z // 64 says whether (x, y, z) is
+      occupied (column_holds)."""
+    mx, my, mz = occupied.shape
+    sums = np.zeros((mx + 1, my + 1, mz + 1), dtype=np.uint16)
+    bits = np.zeros((mx, my, max(1, (mz + 63) // 64)), dtype=np.uint64)
+    for x in range(mx):
+        for y in range(my):
+            row = 0
+            for z in range(mz):
+                if occupied[x, y, z]:
+                    row += 1
+                    bits[x, y, z // 64] |= np.uint64(1) << np.uint64(z % 64)
+                below = sums[x, y + 1, z + 1] + sums[x + 1, y, z + 1] - sums[x, y, z + 1]
+                sums[x + 1, y + 1, z + 1] = below + row
+    return sums, bits
+
+
 @dataclass(frozen=True)
 class OccupiedCells:
     """A grid's occupied cells for nearest-neighbour queries: ICP's target. Cell centres lie on a
@@ -77,39 +145,92 @@ class OccupiedCells:
     offset: np.ndarray
     resolution: float
 
+    @cached_property
+    def index(self) -> tuple[np.ndarray, np.ndarray]:
+        """search_index of the occupied cells, made on the first query (2 bytes and a bit a cell)."""
+        return search_index(self.occupied)
+
     def nearest(self, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """(within, centres): which points have an occupied cell centre within radius (metres), and
         the nearest such centre of each (rows of the others are undefined)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         idx = np.empty((len(points), 3), dtype=np.int64)
         dist = np.empty(len(points))
-        _nearest_cells(self.occupied, np.asarray(self.offset, dtype=np.int64), points, 1.0 / self.resolution,
-                       radius / self.resolution, idx, dist)
+        _nearest_cells(self.occupied, *self.index, np.asarray(self.offset, dtype=np.int64), points,
+                       1.0 / self.resolution, radius / self.resolution, idx, dist)
         return np.isfinite(dist), (idx + self.offset) * self.resolution
 
 
-def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: int,
-        yaw_only: bool = False) -> tuple[np.ndarray, float]:
+@nb.njit(**_JIT)
+def _icp_step(occupied, sums, columns, offset, resolution, source, moved, max_cells, idx, dist, previous,
+              has_previous, min_pairs):
+    """One ICP step: the nearest occupied cell of each moved point within max_cells, then (count of
+    points with one, same pairs as `previous`, the rigid fit of those pairs). The fit is computed only
+    when there are at least min_pairs pairs and they changed; previous (the last pairs' cells, -1 rows
+    for points without one) is updated then."""
+    _nearest_cells(occupied, sums, columns, offset, moved, 1.0 / resolution, max_cells, idx, dist)
+    n = 0
+    same = has_previous
+    for p in range(moved.shape[0]):
+        within = np.isfinite(dist[p])
+        n += within
+        for a in range(3):
+            cell = idx[p, a] if within else -1
+            if previous[p, a] != cell:
+                same = False
+    t = np.eye(4)
+    if n < min_pairs or same:
+        return n, same, t
+    src = np.empty((n, 3))
+    dst = np.empty((n, 3))
+    k = 0
+    for p in range(moved.shape[0]):
+        within = np.isfinite(dist[p])
+        for a in range(3):
+            previous[p, a] = idx[p, a] if within else -1
+        if within:
+            for a in range(3):
+                src[k, a] = source[p, a]
+                dst[k, a] = (idx[p, a] + offset[a]) * resolution
+            k += 1
+    return n, same, kabsch(src, dst)
+
+
+ICP_MIN_PAIRS = 10
+"""ICP stops when fewer points than this have a partner within the radius."""
+
+
+def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray,
+        iterations: int) -> tuple[np.ndarray, float]:
     """(refined T, inlier fraction): source points (b frame) pulled onto the target's occupied cell
-    centres (a frame)."""
+    centres (a frame). Each step pairs every point with the nearest centre within a radius that
+    shrinks from 6 to 1.5 cells over the first half of the steps and is then held; unchanged pairs
+    skip the fit, and end the refinement under the held radius (every further step would repeat)."""
     t = np.asarray(t0, dtype=np.float64).copy()
     coarse = max(1, iterations // 2)
     held = np.full(max(0, iterations - coarse), 1.5)
     radii = np.concatenate([np.geomspace(6.0, 1.5, coarse), held]) * target.resolution
+    points = np.ascontiguousarray(source, dtype=np.float64)
+    offset = np.asarray(target.offset, dtype=np.int64)
+    idx = np.empty((len(source), 3), dtype=np.int64)
+    dist = np.empty(len(source))
+    previous = np.empty((len(source), 3), dtype=np.int64)
     frac = 0.0
-    previous = None
+    has_previous = False
     for k, r in enumerate(radii):
-        ok, nearest = target.nearest(apply(t, source), r)
-        frac = float(ok.mean()) if len(ok) else 0.0
-        if ok.sum() < 10:
+        moved = np.ascontiguousarray(apply(t, source))
+        n, same, fitted = _icp_step(target.occupied, *target.index, offset,
+                                    float(target.resolution), points, moved, r / target.resolution, idx, dist,
+                                    previous, has_previous, ICP_MIN_PAIRS)
+        frac = n / len(source) if len(source) else 0.0
+        if n < ICP_MIN_PAIRS:
             break
-        pairs = np.where(ok[:, None], nearest, np.nan)
-        if previous is not None and np.array_equal(pairs, previous, equal_nan=True):
+        if same:
             if k >= coarse:  # same pairs under the held radius: every further step repeats this one
                 break
             continue  # same pairs, same estimate
-        previous = pairs
-        t = estimate(source[ok], nearest[ok], yaw_only)
+        has_previous = True
+        t = fitted
     return t, frac
 
 

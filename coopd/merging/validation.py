@@ -55,22 +55,48 @@ def classify(cells, threshold):
     return out
 
 
-def vertical_structure(occ: np.ndarray) -> np.ndarray:
-    """Occupied cells with an occupied cell straight above or below: walls and furniture sides.
+@nb.njit(**_JIT)
+def _stacked(cells, threshold, x, y, z):
+    """Whether the occupied cell (x, y, z) has an occupied cell straight above or below."""
+    below = z > 0 and cells[x, y, z - 1] >= threshold
+    return below or (z + 1 < cells.shape[2] and cells[x, y, z + 1] >= threshold)
 
-    Floors and ceilings agree under any horizontal shift or yaw, so counting them would let a wrong
-    transform that merely lays floor on floor look good; validation counts vertical structure only."""
-    v = np.zeros_like(occ)
-    v[:, :, 1:] |= occ[:, :, 1:] & occ[:, :, :-1]
-    v[:, :, :-1] |= occ[:, :, :-1] & occ[:, :, 1:]
-    return v
+
+@nb.njit(**_JIT)
+def occupied_indices(cells, threshold):
+    """(indices of the occupied cells, indices of those on vertical structure: an occupied cell
+    straight above or below, walls and furniture sides), both in array order as np.argwhere gives
+    them; one pass to count, one to fill. Floors and ceilings agree under any horizontal shift or
+    yaw, so counting them would let a wrong transform that merely lays floor on floor look good:
+    validation samples vertical structure only."""
+    mx, my, mz = cells.shape
+    n = m = 0
+    for x in range(mx):
+        for y in range(my):
+            for z in range(mz):
+                if cells[x, y, z] >= threshold:
+                    n += 1
+                    m += _stacked(cells, threshold, x, y, z)
+    occupied = np.empty((n, 3), dtype=np.int64)
+    vertical = np.empty((m, 3), dtype=np.int64)
+    n = m = 0
+    for x in range(mx):
+        for y in range(my):
+            for z in range(mz):
+                if cells[x, y, z] >= threshold:
+                    occupied[n, 0], occupied[n, 1], occupied[n, 2] = x, y, z
+                    n += 1
+                    if _stacked(cells, threshold, x, y, z):
+                        vertical[m, 0], vertical[m, 1], vertical[m, 2] = x, y, z
+                        m += 1
+    return occupied, vertical
 
 
 def summarise(grid: OccupancyGrid, threshold: int, max_points: int) -> MapSummary:
     """Classes and occupied points of a grid, computed once per map."""
-    occ_mask = grid.cells >= threshold
-    pts = (np.argwhere(occ_mask) + grid.offset) * grid.resolution
-    vert = (np.argwhere(vertical_structure(occ_mask)) + grid.offset) * grid.resolution
+    occupied, vertical = occupied_indices(grid.cells, threshold)
+    pts = (occupied + grid.offset) * grid.resolution
+    vert = (vertical + grid.offset) * grid.resolution
     step = max(1, len(vert) // max(1, max_points))
     return MapSummary(classify(grid.cells, threshold), grid.offset, grid.resolution, pts, vert[::step].copy())
 

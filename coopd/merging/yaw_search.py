@@ -88,12 +88,10 @@ def _clear_near_walls(free, walls):
     nx, ny = free.shape
     for x in range(nx):
         for y in range(ny):
-            if free[x, y] == 0:
-                continue
-            for a in range(max(0, x - 1), min(nx, x + 2)):
-                for b in range(max(0, y - 1), min(ny, y + 2)):
-                    if walls[a, b] > 0:
-                        free[x, y] = 0
+            if walls[x, y] > 0:  # walls are few: clear around each, rather than search around each free pixel
+                for a in range(max(0, x - 1), min(nx, x + 2)):
+                    for b in range(max(0, y - 1), min(ny, y + 2)):
+                        free[a, b] = 0
 
 
 def _images(view: TopView, yaw: float, origin: np.ndarray, cell: float, n: tuple):
@@ -105,6 +103,25 @@ def _images(view: TopView, yaw: float, origin: np.ndarray, cell: float, n: tuple
     _raster_into(free, view.free, np.ones(len(view.free), dtype=np.float32), c, s, origin, cell)
     _clear_near_walls(free, walls)
     return walls, free
+
+
+@nb.njit(**_JIT)
+def _peaks(score, count, rad):
+    """(scores, rows, columns) of the count best cells of score, each found after the square of
+    half-size rad around the ones before was suppressed (wrapping: the shifts are cyclic); ties go
+    to the first cell in array order. score is overwritten."""
+    n0, n1 = score.shape
+    scores = np.empty(count)
+    rows = np.empty(count, dtype=np.int64)
+    cols = np.empty(count, dtype=np.int64)
+    for k in range(count):
+        flat = np.argmax(score)
+        i, j = flat // n1, flat % n1
+        scores[k], rows[k], cols[k] = score[i, j], i, j
+        for a in range(i - rad, i + rad + 1):
+            for b in range(j - rad, j + rad + 1):
+                score[a % n0, b % n1] = -np.inf
+    return scores, rows, cols
 
 
 def vertical_offset(ha: np.ndarray, za: float, hb: np.ndarray, zb: float, resolution: float) -> float:
@@ -130,9 +147,10 @@ def fast_fft_length(n: int) -> int:
     return best
 
 
-def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid,
-           params: MergeParams) -> list[tuple[float, np.ndarray]]:
-    """(correlation score, 4x4 b -> a) for the best peaks over all yaws, strongest first."""
+def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid, params: MergeParams,
+           limit: int | None = None) -> list[tuple[float, np.ndarray]]:
+    """(correlation score, 4x4 b -> a) for the best peaks over all yaws (the first `limit` of them),
+    strongest first."""
     res = a_grid.resolution
     ha, za = height_histogram(a_grid, params.occupied_threshold)
     hb, zb = height_histogram(b_grid, params.occupied_threshold)
@@ -159,23 +177,19 @@ def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid,
     wa, fa = np.fft.rfft2(wa_img), np.fft.rfft2(fa_img)
     lam = params.search_free_penalty
     b_org = np.array([-b_rad, -b_rad])
-    found = []
+    rad = int(np.ceil(params.search_suppress_m / cell))
+    peaks = []
     for yaw in np.radians(np.arange(0.0, 360.0, params.search_yaw_step_deg)):
-        r = rotation_z(yaw)[:2, :2]
         wb_img, fb_img = _images(b, yaw, b_org, cell, n)
         wb, fb = np.conj(np.fft.rfft2(wb_img)), np.conj(np.fft.rfft2(fb_img))
         score = np.fft.irfft2(wa * wb - lam * (wa * fb + fa * wb), s=n)
-        for _ in range(params.search_peaks_per_yaw):
-            k = int(np.argmax(score))
-            i, j = np.unravel_index(k, n)
-            s = float(score[i, j])
-            si = i if i <= a_ext[0] else i - n[0]  # shifts span [-b_ext, a_ext]: one period
-            sj = j if j <= a_ext[1] else j - n[1]
-            t_xy = a_org - b_org + np.array([si, sj]) * cell - r @ centre
-            found.append((s, rigid(rotation_z(yaw), [t_xy[0], t_xy[1], tz])))
-            rad = int(np.ceil(params.search_suppress_m / cell))
-            ii = np.arange(i - rad, i + rad + 1) % n[0]
-            jj = np.arange(j - rad, j + rad + 1) % n[1]
-            score[np.ix_(ii, jj)] = -np.inf
-    found.sort(key=lambda x: -x[0])
+        scores, rows, cols = _peaks(score, params.search_peaks_per_yaw, rad)
+        peaks += [(float(s), yaw, int(i), int(j)) for s, i, j in zip(scores, rows, cols, strict=True)]
+    peaks.sort(key=lambda x: -x[0])
+    found = []
+    for s, yaw, i, j in peaks[:limit]:
+        si = i if i <= a_ext[0] else i - n[0]  # shifts span [-b_ext, a_ext]: one period
+        sj = j if j <= a_ext[1] else j - n[1]
+        t_xy = a_org - b_org + np.array([si, sj]) * cell - rotation_z(yaw)[:2, :2] @ centre
+        found.append((s, rigid(rotation_z(yaw), [t_xy[0], t_xy[1], tz])))
     return found

@@ -21,7 +21,8 @@ no accepted pair beyond 0.15 m, 0 wrong, more successes than Open3D in every ban
 Usage: scripts/bench merge [--seed S] [--worlds N] [--per-world K] [--references K] [--pairs N]
        [--far N] [--robust res0.05,res0.2,lift1,flip0.1] [--variants coopd] [--no-open3d] [--out PATH]
        [--cache DIR]
-Tables on stderr, JSON on stdout and in out/bench/merge.json. The pairs depend only on the seed and
+Tables and CPU seconds per merge (median, p90, max) on stderr, JSON on stdout and in
+out/bench/merge.json. The pairs depend only on the seed and
 the counts, so --cache DIR keeps them (one .npz per set of arguments) and a repeated run skips the
 ray-casting (a quarter of the run).
 """
@@ -282,6 +283,16 @@ def goal(summary: dict, method: str = "coopd") -> dict:
             "beats_open3d_every_band": all(c > o for c, o in beats.values()) if beats else None}
 
 
+def cpu_summary(rows: list[dict]) -> dict:
+    """Per method: merges, median, 90th percentile and largest CPU seconds per merge."""
+    out = {}
+    for method in dict.fromkeys(r["method"] for r in rows):
+        cpu = np.array([r["cpu_seconds"] for r in rows if r["method"] == method])
+        out[method] = {"merges": len(cpu), "median": round(float(np.median(cpu)), 3),
+                       "p90": round(float(np.percentile(cpu, 90)), 3), "max": round(float(cpu.max()), 3)}
+    return out
+
+
 def table(summary: dict) -> str:
     """The per-band tables, one line per set, B variant, method and band."""
     head = (f"{'set':<9} {'B':<8} {'method':<7} {'overlap':<13} {'pairs':>5} {'success':>7} {'wrong':>5} "
@@ -357,9 +368,13 @@ def main(argv=None) -> dict:
     command = "scripts/bench merge " + " ".join(sys.argv[1:] if argv is None else argv)
     report = {"seed": seed, "command": command,
               "fresh_worlds": worlds, "pairs": len(pairs), "generation_seconds": round(gen_s, 1),
-              "open3d": open3d, "goal": goal(summary), "summary": summary, "rows": rows}
+              "open3d": open3d, "goal": goal(summary), "cpu_seconds_per_merge": cpu_summary(rows),
+              "summary": summary, "rows": rows}
     print(table(summary), file=sys.stderr)
     print("goal (fresh worlds, coopd):", json.dumps(report["goal"]), file=sys.stderr)
+    for method, cpu in report["cpu_seconds_per_merge"].items():
+        print(f"CPU s per merge, {method}: median {cpu['median']:.3f}, p90 {cpu['p90']:.3f}, "
+              f"max {cpu['max']:.3f} ({cpu['merges']} merges)", file=sys.stderr)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(args.out, json.dumps(report, indent=1).encode())
     print(json.dumps({k: v for k, v in report.items() if k != "rows"}, indent=1))

@@ -31,6 +31,32 @@ def test_yaw_search_puts_the_true_alignment_first(near_pair):
     assert np.linalg.norm(best[:2, 3] - truth[:2, 3]) < 0.8
 
 
+def test_a_limited_search_returns_the_first_peaks_of_the_full_one(near_pair):
+    """search(limit=k) makes transforms for the k strongest peaks only: the same k, in the same order,
+    as the head of the full list."""
+    found = yaw_search.search(near_pair.a, near_pair.b, coopd_params())
+    head = yaw_search.search(near_pair.a, near_pair.b, coopd_params(), 6)
+    assert len(head) == 6
+    for (s, t), (s_head, t_head) in zip(found[:6], head, strict=True):
+        assert s == s_head and np.array_equal(t, t_head)
+    assert [s for s, _ in found] == sorted((s for s, _ in found), reverse=True)
+
+
+def test_free_pixels_next_to_a_wall_pixel_are_cleared():
+    """A free pixel within one pixel (8-neighbourhood, the image's border included) of a wall pixel
+    does not count: the wall's own pixel holds the free columns in front of it."""
+    rng = np.random.default_rng(2)
+    walls = (rng.random((40, 33)) < 0.03).astype(np.float32)
+    free = (rng.random((40, 33)) < 0.5).astype(np.float32)
+    near = np.zeros((42, 35), dtype=bool)
+    for dx in range(3):
+        for dy in range(3):
+            near[dx:dx + 40, dy:dy + 33] |= walls > 0
+    want = np.where(near[1:41, 1:34], 0.0, free)
+    yaw_search._clear_near_walls(free, walls)
+    assert np.array_equal(free, want) and free.sum() > 100
+
+
 def test_fft_lengths_are_the_smallest_5_smooth_lengths_not_below_n():
     def smooth(m):
         for p in (2, 3, 5):

@@ -5,6 +5,7 @@ import pytest
 
 from coopd.geometry import apply, euler_to_matrix, invert, rigid, rotation_angle_deg, rotation_z
 from coopd.grid import transform_grid
+from coopd.merging import refine
 from coopd.merging.refine import FIELD_SCALE, SIDES, OccupiedCells, facing_fields, field_fit, free_sides, icp
 
 
@@ -150,10 +151,95 @@ def test_nearest_occupied_cell_is_as_near_as_a_kd_tree_finds(near_pair):
     lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
     near_walls = centres[::50] + rng.normal(0.0, 0.07, (len(centres[::50]), 3))
     points = np.concatenate([rng.uniform(lo, hi, (3000, 3)), near_walls])
-    for radius in (0.15, 0.6):
+    for radius in (0.15, 0.6, 1.2):
         within, nearest = _target(a).nearest(points, radius)
         d_ref, _ = cKDTree(centres).query(points, distance_upper_bound=radius)
         assert np.array_equal(within, np.isfinite(d_ref))
         d = np.linalg.norm(nearest[within] - points[within], axis=1)
         np.testing.assert_allclose(d, d_ref[within], atol=1e-9)
         assert within.sum() > 500
+
+
+def testcube_counts_from_the_wrapping_prefix_sums_are_exact():
+    """The shell search skips a shell when its cube holds no occupied cell: the count of any cube up
+    to MAX_CUBE_HALF, clipped at the grid's faces or wholly outside, is the brute-force count, also
+    where the uint16 prefix sums wrapped (a full grid of 60^3 cells)."""
+    rng = np.random.default_rng(5)
+    for occupied in (rng.random((23, 31, 17)) < 0.03, np.ones((60, 60, 60), dtype=bool)):
+        sums, _ = refine.search_index(occupied)
+        for _ in range(300):
+            centre = rng.integers(-25, np.array(occupied.shape) + 25)
+            half = int(rng.integers(0, refine.MAX_CUBE_HALF + 1))
+            lo = np.maximum(centre - half, 0)
+            hi = np.maximum(np.minimum(centre + half + 1, occupied.shape), lo)
+            want = int(occupied[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].sum())
+            assert refine.cube_count(sums, *(int(c) for c in centre), half) == want
+
+
+def _reference_icp(target, source, t, iterations):
+    """ICP written plainly: nearest centres within the shrinking radius, Kabsch on the pairs, stop on
+    repeated pairs under the held radius."""
+    from coopd.merging.mtm import estimate
+
+    coarse = iterations // 2
+    cells = np.concatenate([np.geomspace(6.0, 1.5, coarse), np.full(iterations - coarse, 1.5)])
+    radii = cells * target.resolution
+    previous, frac = None, 0.0
+    for k, r in enumerate(radii):
+        ok, nearest = target.nearest(apply(t, source), r)
+        frac = float(ok.mean())
+        if ok.sum() < 10:
+            break
+        pairs = np.where(ok[:, None], nearest, np.nan)
+        if previous is not None and np.array_equal(pairs, previous, equal_nan=True):
+            if k >= coarse:
+                break
+            continue
+        previous = pairs
+        t = estimate(source[ok], nearest[ok], False)
+    return t, frac
+
+
+def test_icp_steps_are_the_plain_algorithms_to_the_bit(near_pair):
+    """icp's compiled step (pairing, the unchanged-pairs test, the fit) gives exactly what the plain
+    loop gives, from a start 0.3 m and 4 degrees off."""
+    a, b = near_pair.a, near_pair.b
+    src = _occupied_m(b)[::7]
+    start = rigid(rotation_z(np.radians(4.0)), [0.3, -0.2, 0.05]) @ near_pair.a_from_b
+    t, frac = icp(_target(a), src, start, 28)
+    t_ref, frac_ref = _reference_icp(_target(a), src, start, 28)
+    assert np.array_equal(t, t_ref) and frac == frac_ref
+    assert rotation_angle_deg(t[:3, :3].T @ near_pair.a_from_b[:3, :3]) < 1.0
+
+
+def test_column_bits_answer_every_z_range_as_the_cells_do():
+    """column_holds reads whether a column holds an occupied cell between two heights from the bits,
+    across 64-bit words (a grid 150 cells tall) and clipped at the grid's bottom and top."""
+    rng = np.random.default_rng(6)
+    occupied = rng.random((5, 4, 150)) < 0.01
+    _, bits = refine.search_index(occupied)
+    for _ in range(2000):
+        x, y = int(rng.integers(0, 5)), int(rng.integers(0, 4))
+        z0 = int(rng.integers(-10, 160))
+        z1 = z0 + int(rng.integers(0, 80))
+        want = bool(occupied[x, y, max(z0, 0):max(min(z1 + 1, 150), 0)].any())
+        assert refine.column_holds(bits, x, y, z0, z1) == want
+
+
+def test_nearest_occupied_cell_in_a_tall_sparse_grid_is_the_exact_nearest():
+    """The shell search with its skips (empty cubes, empty columns) on a grid taller than one word of
+    column bits: the nearest centre within the radius, as a k-d tree finds it."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(8)
+    occupied = rng.random((30, 25, 140)) < 0.004
+    offset = np.array([-7, 3, -60])
+    target = OccupiedCells(occupied, offset, 0.1)
+    centres = (np.argwhere(occupied) + offset) * 0.1
+    points = rng.uniform(centres.min(axis=0) - 0.5, centres.max(axis=0) + 0.5, (4000, 3))
+    for radius in (0.15, 0.6):
+        within, nearest = target.nearest(points, radius)
+        d_ref, _ = cKDTree(centres).query(points, distance_upper_bound=radius)
+        assert np.array_equal(within, np.isfinite(d_ref)) and within.sum() > 100
+        np.testing.assert_allclose(np.linalg.norm(nearest[within] - points[within], axis=1), d_ref[within],
+                                   atol=1e-9)

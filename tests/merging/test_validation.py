@@ -1,7 +1,15 @@
 import numpy as np
 
 from coopd.geometry import rigid, rotation_z
-from coopd.merging.validation import FREE, NEAR_OCCUPIED, UNSEEN, agreement, classify, summarise
+from coopd.merging.validation import (
+    FREE,
+    NEAR_OCCUPIED,
+    UNSEEN,
+    agreement,
+    classify,
+    occupied_indices,
+    summarise,
+)
 
 
 def test_classify_marks_free_unknown_and_cells_next_to_occupied():
@@ -24,3 +32,16 @@ def test_true_transform_scores_high_and_wrong_ones_low(near_pair):
         bad = agreement(a, b, wrong)
         assert bad.score < 0.9
         assert bad.support(20.0) < good.support(20.0)
+
+
+def test_occupied_and_vertical_cells_are_listed_as_argwhere_lists_them(near_pair):
+    """occupied_indices lists, in one scan, the occupied cells and those with an occupied cell
+    straight above or below, in np.argwhere's order (the samples validation spreads evenly)."""
+    cells = near_pair.a.cells
+    occupied = cells >= 50
+    stacked = np.zeros_like(occupied)
+    stacked[:, :, 1:] |= occupied[:, :, 1:] & occupied[:, :, :-1]
+    stacked[:, :, :-1] |= occupied[:, :, :-1] & occupied[:, :, 1:]
+    listed, vertical = occupied_indices(cells, 50)
+    assert np.array_equal(listed, np.argwhere(occupied))
+    assert np.array_equal(vertical, np.argwhere(stacked)) and 0 < len(vertical) < len(listed)

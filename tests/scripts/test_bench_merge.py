@@ -52,6 +52,9 @@ def test_a_bounded_fresh_seed_run_prints_its_seed_and_repeats(tmp_path, capsys):
     assert [r["variant"] for r in rows] == ["base", "flip0.1"]
     assert all(r["mean_disp_m"] <= r["max_disp_m"] for r in rows)
     assert json.loads((tmp_path / "merge.json").read_text())["summary"] == report["summary"]
+    cpu = report["cpu_seconds_per_merge"]["coopd"]
+    assert cpu["merges"] == 2 and 0 < cpu["median"] <= cpu["p90"] <= cpu["max"]
+    assert "CPU s per merge, coopd: median" in err
     again = merge.main(argv)
     assert again["fresh_worlds"] == report["fresh_worlds"]
     assert [r["overlap"] for r in again["rows"]] == [r["overlap"] for r in rows]
