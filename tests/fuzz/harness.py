@@ -39,6 +39,16 @@ def sample_grid(rng: random.Random) -> OccupancyGrid:
     return OccupancyGrid(cells, rng.choice((0.05, 0.1, 0.2, 1.0)), offset)
 
 
+def with_matching_crc(data: bytes, head: int, rng: random.Random) -> bytes:
+    """Half the time, the mutant with the CRC-32 at the end of its `head`-byte header made to match
+    the payload after it, so the checks behind the CRC are reached too."""
+    if len(data) < head or rng.random() < 0.5:
+        return data
+    out = bytearray(data)
+    struct.pack_into("<I", out, head - 4, zlib.crc32(out[head:]))
+    return bytes(out)
+
+
 class Target:
     """One parser under fuzz: seeds() are valid inputs, check(data) feeds one input."""
 
@@ -239,12 +249,7 @@ class DeltaTarget(Target):
         """Half the mutants get a matching payload CRC, so the index and brick checks behind it run."""
         from coopd.sharing import delta
 
-        head = delta.DELTA_HEADER.size
-        if len(data) < head or rng.random() < 0.5:
-            return data
-        out = bytearray(data)
-        struct.pack_into("<I", out, head - 4, zlib.crc32(out[head:]))
-        return bytes(out)
+        return with_matching_crc(data, delta.DELTA_HEADER.size, rng)
 
     def check(self, data: bytes) -> None:
         from coopd.sharing import delta
@@ -293,12 +298,7 @@ class MergeResultTarget(Target):
 
     def post_mutate(self, data: bytes, rng: random.Random) -> bytes:
         """Half the mutants get a matching CRC, so the edge checks behind it are reached."""
-        head = wire.RESULT_HEADER.size
-        if len(data) < head or rng.random() < 0.5:
-            return data
-        out = bytearray(data)
-        struct.pack_into("<I", out, head - 4, zlib.crc32(out[head:]))
-        return bytes(out)
+        return with_matching_crc(data, wire.RESULT_HEADER.size, rng)
 
     def check(self, data: bytes) -> None:
         from coopd.sharing.service import wire_inspect
