@@ -334,7 +334,9 @@ def linger(swarm: Swarm, at_global: dict, cpu1: dict, seconds: float) -> dict:
 
 
 def bytes_sent(sharing: dict) -> int:
-    """Bytes a daemon sent sharing: MTP transfers to every peer, and Zenoh publications and replies."""
+    """Bytes a daemon handed over for sharing: MTP transfers to every peer (one per peer), and Zenoh
+    publications and query replies (one per publication: Zenoh then sends it on every link to a
+    subscriber, so on the wire a peer-to-peer swarm carries up to one copy per peer)."""
     return (sum(p.get("bytes_sent", 0) for p in sharing.get("peers", []))
             + (sharing.get("zenoh") or {}).get("bytes_out", 0))
 
