@@ -51,7 +51,7 @@ class DeltaBaseError(WireError):
 
 
 @dataclass(frozen=True)
-class DeltaInfo:
+class DeltaInfo(wire.SizedHeader):
     """A delta's header, validated, without touching the payload (see peek_delta)."""
 
     vehicle_id: int
@@ -70,14 +70,6 @@ class DeltaInfo:
     header_size: int
     payload_size: int
     payload_crc32: int
-
-    @property
-    def cells(self) -> int:
-        return self.shape[0] * self.shape[1] * self.shape[2]
-
-    @property
-    def total_size(self) -> int:
-        return self.header_size + self.payload_size
 
     def lattice(self) -> tuple[np.ndarray, np.ndarray]:
         """(lowest brick, bricks per axis) of the brick lattice covering the new map's box."""

@@ -80,8 +80,26 @@ class MapMeta:
     """Seconds (Unix time) when this version of the map was made."""
 
 
+class SizedHeader:
+    """What a map message's header (full map or delta) says about size: cells of its box (shape) and
+    bytes of the whole message (header_size + payload_size)."""
+
+    shape: tuple[int, int, int]
+    header_size: int
+    payload_size: int
+
+    @property
+    def cells(self) -> int:
+        return self.shape[0] * self.shape[1] * self.shape[2]
+
+    @property
+    def total_size(self) -> int:
+        """Bytes of the whole message: where it ends inside a padded MTP transfer."""
+        return self.header_size + self.payload_size
+
+
 @dataclass(frozen=True)
-class MessageInfo:
+class MessageInfo(SizedHeader):
     """A message's header, read without touching the payload (see peek())."""
 
     message_type: int
@@ -96,15 +114,6 @@ class MessageInfo:
     map_version: int = 0
     stamp: float = 0.0
     crc32: int | None = None
-
-    @property
-    def cells(self) -> int:
-        return self.shape[0] * self.shape[1] * self.shape[2]
-
-    @property
-    def total_size(self) -> int:
-        """Bytes of the whole message: where it ends inside a padded MTP transfer."""
-        return self.header_size + self.payload_size
 
     def check(self, limits: "DecodeLimits") -> None:
         """WireError if the announced map or message exceeds limits (lets a transport refuse early)."""

@@ -11,6 +11,7 @@ from coopd.daemon.service import Daemon
 from firmware_sim.simulation import Simulation
 from firmware_sim.worlds import build_world
 from tests.loopback_fc import free_port
+from tests.ports import zenoh_port
 
 pytest.importorskip("zenoh")
 pytestmark = pytest.mark.slow
@@ -19,7 +20,7 @@ pytestmark = pytest.mark.slow
 def test_two_daemons_share_and_merge_over_zenoh():
     wd = workdir("coopd-zenoh-")
     mav_port = free_port()
-    zenoh_ports = [free_port(), free_port()]
+    zenoh_ports = [zenoh_port(), zenoh_port()]
     key_file = wd / "swarm.key"
     key_file.write_bytes(b"z" * 32)
     key_file.chmod(0o600)

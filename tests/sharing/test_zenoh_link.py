@@ -4,7 +4,7 @@ publish, fetch late, and refuse what the receive path refuses. Sessions listen a
 
 import pytest
 import sharing_testmsg as tm
-from sharing_support import failures, free_port, growing_maps, settings, wait_until
+from sharing_support import failures, growing_maps, settings, wait_until
 
 from coopd.sharing import delta
 from coopd.sharing.service import SharingConfig, SharingService, wire_inspect, wire_verifier
@@ -17,6 +17,7 @@ from coopd.sharing.zenoh_link import (
     seal,
     unseal,
 )
+from tests.ports import zenoh_port
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -70,7 +71,7 @@ def node(vid: int, listen_port: int, connect=(), key: bytes | None = KEY, swarm:
 
 
 def test_a_map_reaches_a_peer_newer_versions_follow_and_a_late_joiner_fetches_it():
-    ports = [free_port() for _ in range(3)]
+    ports = [zenoh_port() for _ in range(3)]
     a = node(1, ports[0])
     b = node(2, ports[1], connect=[ports[0]])
     late = None
@@ -96,7 +97,7 @@ def test_a_map_reaches_a_peer_newer_versions_follow_and_a_late_joiner_fetches_it
 
 
 def test_what_the_receive_path_refuses_is_counted_and_changes_nothing():
-    ports = [free_port() for _ in range(3)]
+    ports = [zenoh_port() for _ in range(3)]
     receiver = node(2, ports[0])
     wrong_key = node(5, ports[1], connect=[ports[0]], key=OTHER_KEY)
     raw = zenoh.open(_raw_config(ports[2], ports[0]))
@@ -143,7 +144,7 @@ def _raw_config(listen_port: int, connect_port: int):
 def test_routers_carry_a_map_along_a_line():
     """A-B-C-D as routers, each connected to its neighbour only (multicast scouting off; routers do not
     connect to routers they hear of): A's map and D's reach the other end through the routers between."""
-    ports = [free_port() for _ in range(4)]
+    ports = [zenoh_port() for _ in range(4)]
     line = []
     try:
         for i in range(4):
@@ -163,7 +164,7 @@ def test_routers_carry_a_map_along_a_line():
 def test_peers_told_of_others_connect_to_them():
     """As peers, connected in a line, they learn of the others by gossip and connect directly: A's
     map reaches D in one hop (where every host is in reach of every other, as on loopback)."""
-    ports = [free_port() for _ in range(4)]
+    ports = [zenoh_port() for _ in range(4)]
     line = []
     try:
         for i in range(4):
@@ -190,7 +191,7 @@ def test_maps_go_as_deltas_over_zenoh_and_end_bit_identical():
     """Vehicle 1 publishes a growing map version by version: after the first, each goes out as the delta
     from the one before; vehicle 2 ends with vehicle 1's exact message on fewer bytes; a vehicle that
     joins late fetches the full map and then follows the deltas."""
-    ports = [free_port() for _ in range(3)]
+    ports = [zenoh_port() for _ in range(3)]
     maps = growing_maps(12)
     a = real_node(1, ports[0])
     b = real_node(2, ports[1], connect=[ports[0]])
@@ -220,7 +221,7 @@ def test_maps_go_as_deltas_over_zenoh_and_end_bit_identical():
 
 
 def test_a_delta_whose_base_is_not_held_fetches_the_full_map():
-    ports = [free_port() for _ in range(2)]
+    ports = [zenoh_port() for _ in range(2)]
     maps = growing_maps(3)
     receiver = real_node(2, ports[0])
     raw = zenoh.open(_raw_config(ports[1], ports[0]))
