@@ -259,6 +259,10 @@ class MergingConfig:
         "distributed: seconds a map's full search waits for a lower vehicle id's result; 0: never",
         30.0, _between(0.0, 3600.0, " s"),
     )
+    vouched: bool = _key(
+        "distributed: a map a peer merged on exactly the map versions we hold is placed by its edge, "
+        "checked, not refined (false: refined here too, about ten times the CPU per map)", True
+    )
     recheck_growth: float = _key(
         "search a merged map again, its transform competing, once the pair's known cells grew this much",
         1.3, _between(1.05, 100.0, "x"),

@@ -53,6 +53,9 @@ class MergerSettings:
     defer_full_s: float = 0.0
     """Distributed: a map's full search waits this long for the swarm's lowest vehicle id to
     publish it (then validating its result is enough); 0: never wait."""
+    vouched: bool = True
+    """Distributed: a peer's edge found on exactly the map versions we hold is checked, not refined
+    (coopd.merging.hints, vouched hints)."""
     recheck_growth: float | None = 1.3
     """A merged map is searched again, its known transforms competing, once the known cells of it
     and our map grew this much since it was last decided: a transform accepted on small early maps
@@ -77,6 +80,7 @@ class MergerSettings:
             settle_s=min(config.sharing.scan_period_s, MERGE_MIN_GAP_S),
             distributed=merging.distributed,
             defer_full_s=merging.defer_full_s,
+            vouched=merging.vouched,
             recheck_growth=merging.recheck_growth,
             confirm_before_fusing=merging.confirm_before_fusing,
         )
@@ -97,6 +101,9 @@ class MergeSources:
     """Peers' merge results (wire.MergeResultMessage), used as hints when distributed."""
     publish_results: Callable[[MergeResultMessage], None] | None = None
     """Hands our merge results to sharing, when distributed."""
+    published_version: Callable[[int], int] | None = None
+    """The version peers hold of our local map at a given version counter (the version our edges
+    name, so a peer can tell it merged the very maps we did); None: the counter itself."""
 
 
 class MergeTrigger:
@@ -289,9 +296,10 @@ class FitBook:
     # -------------------------------------------------------------------------- after a merge
     def record(self, own_id: int, maps: list, results: list, sizes: list[int], held: set[int],
                inputs: tuple | None, local_version: int) -> list[MergeEdge]:
-        """Book a merge's results (maps: the received maps merged, in merge order): confirm or hold
-        provisional fits, record how each map was decided, keep every accepted transform as the next
-        merge's own hint. Returns the edges of the accepted transforms."""
+        """Book a merge's results (maps: the received maps merged, in merge order; local_version: our
+        map's version as peers hold it): confirm or hold provisional fits, record how each map was
+        decided, keep every accepted transform as the next merge's own hint. Returns the edges of the
+        accepted transforms."""
         vids = [m.vehicle_id for m in maps]
         self._confirm(vids, results, held, sizes)
         self._decide(vids, results, sizes)

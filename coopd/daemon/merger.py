@@ -147,8 +147,8 @@ class Merger:
         self.publisher = ResultPublisher(vehicle_id)
         self.global_slot = GlobalMapSlot(vehicle_id, budget)
         self.counters = {"done": 0, "failed": 0, "deferred": 0, "nothing_to_merge": 0, "unchanged": 0,
-                         "full_registrations": 0, "hinted_own": 0, "hinted_peer": 0, "hint_rejected": 0,
-                         "rechecks": 0}
+                         "full_registrations": 0, "hinted_own": 0, "hinted_peer": 0, "hinted_vouched": 0,
+                         "hint_rejected": 0, "rechecks": 0}
         self.cpu_s = 0.0
         """CPU time of the merging thread inside merges (time.thread_time): the work the bench sums."""
         self.last: dict | None = None
@@ -182,9 +182,11 @@ class Merger:
         return {k: last[k] for k in ("outcome", "detail", "seconds")}
 
     def on_peer_result(self) -> None:
-        """A peer's merge result arrived: merge again if it may bring a map we left out."""
+        """A peer's merge result arrived: merge again if it may bring a map we left out; at once
+        (not settled, no minimum gap) while a full search waits for a peer: this is the answer it
+        waits for, and validating it costs a fraction of the search it saves."""
         if self.settings.distributed and self.book.left_out:
-            self.request("peer result")
+            self.request("peer result", urgent=self.book.deferring)
 
     def stop(self) -> None:
         self.trigger.stop()
@@ -279,7 +281,9 @@ class Merger:
             with self.budget.scratch("merge-scratch", need):
                 vids = [m.vehicle_id for m, _ in infos]
                 others = [decode_map(m.data, s.limits)[0] for m, _ in infos]
-                hints = self._hints(vids)
+                shared_version = self._shared_version(local_version)
+                versions = {m.vehicle_id: m.version for m, _ in infos} | {self.vehicle_id: shared_version}
+                hints = self._hints(vids, versions)
                 hints_only = self.book.deferred(self.vehicle_id, vids, hints, s, time.monotonic())
                 local_known = local_grid.counts().known
                 sizes = [local_known + g.counts().known for g in others]
@@ -296,7 +300,7 @@ class Merger:
             return "deferred", f"over the memory budget: {e}"
         self._count(result)
         edges = self.book.record(self.vehicle_id, [m for m, _ in infos], result.results, sizes, held, inputs,
-                                 local_version)
+                                 shared_version)
         self._publish([e for e in edges if e.b not in held])
         if not self.global_slot.install(merged):
             return "deferred", f"global map of {merged.size} cells does not fit the memory budget"
@@ -362,14 +366,21 @@ class Merger:
         return "done", (f"{len(held)} provisional merges confirmed {[m.vehicle_id for m in held]} (no map "
                         f"changed); global {'x'.join(map(str, merged.shape))} cells")
 
-    def _hints(self, vids: list[int]) -> list[list]:
-        """Hints per input map: own last accepted transforms, and peers' results when distributed."""
+    def _shared_version(self, local_version: int) -> int:
+        """Our local map's version as peers hold it (what our edges name)."""
+        to_shared = self.sources.published_version
+        return local_version if to_shared is None else to_shared(local_version)
+
+    def _hints(self, vids: list[int], versions: dict[int, int]) -> list[list]:
+        """Hints per input map: own last accepted transforms, and peers' results when distributed
+        (versions: the map version we hold per vehicle, ours included, to tell vouched edges)."""
         from coopd.merging.hints import hints_for  # only merging with merge_all: the build has it
 
         peer = []
         if self.settings.distributed and self.sources.peer_results is not None:
             peer = [r for r in self.sources.peer_results() if r.vehicle_id != self.vehicle_id]
-        return hints_for(self.vehicle_id, vids, self.book.transforms(), peer)
+        return hints_for(self.vehicle_id, vids, self.book.transforms(), peer,
+                         versions if self.settings.vouched else None)
 
     def _count(self, result) -> None:
         """Merge work by kind: full searches, hints accepted (own / peer) and hints refused."""
@@ -379,6 +390,7 @@ class Merger:
         c["hinted_own"] += methods.count("hint:own")
         c["hinted_peer"] += methods.count("hint:peer")
         c["hint_rejected"] += sum(getattr(result, "hints_refused", []))
+        c["hinted_vouched"] += getattr(result, "vouched", 0)
 
     def _publish(self, edges: list[MergeEdge]) -> None:
         """Publish our validated merges for peers (only when distributed and they changed)."""

@@ -317,6 +317,7 @@ class Daemon:
                 local_version=lambda: self.mapper.version,
                 peer_results=self._peer_results,
                 publish_results=self._publish_results,
+                published_version=lambda v: map_versions.compose(self.epoch, v),
             ),
             self.budget,
             merge_fn=self.merge_fn,

@@ -18,6 +18,13 @@ distinct transforms that both validate, none is taken (try_hints): the full sear
 A lone wrong hint can still validate (the mirror fit of a near-symmetric building does); the daemon
 therefore sends a merged map through the full search again once the maps grew, its hints competing
 there as hypotheses (merge_all contest, coopd/daemon/merger.py).
+
+A vouched hint is a peer's edge between two other maps found on exactly the map versions we hold
+(the edge names both versions): the peer already ran refinement and validation on those very maps,
+so running them again here would redo its work. Only the link to the peer's map is refined and
+validated here; the vouched edge is checked by agreement alone (check_vouched), and refined like
+any hint when that check fails. In a swarm where one drone searches every pair, this drops the
+others' merge work per map from a refinement to a check (scripts/bench swarm).
 """
 
 from dataclasses import dataclass, replace
@@ -25,8 +32,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..geometry import check_rigid, invert, rotation_angle_deg
-from .pair import MergeResult, PreparedMap, distinct, judge
+from .pair import MergeResult, PreparedMap, distinct, judge, rejection, share
 from .params import MergeParams
+from .validation import agreement
 
 MAX_HINTS = 4
 """Hints tried per input map at most (each costs an ICP and a validation)."""
@@ -45,6 +53,8 @@ class Hint:
     transform: np.ndarray
     source: str = "own"
     via: int | None = None
+    vouched: bool = False
+    """A peer's edge from the via map, found on the map versions we hold (checked, not refined)."""
 
     def __post_init__(self):
         object.__setattr__(self, "transform", check_rigid(self.transform))
@@ -66,6 +76,19 @@ def validate_hint(a: PreparedMap, b: PreparedMap, t: np.ndarray, params: MergePa
              rotation_angle_deg(t[:3, :3].T @ r.transform[:3, :3]))
     ok = r.accepted and moved[0] <= HINT_MAX_SHIFT_M and moved[1] <= HINT_MAX_TURN_DEG
     return r if ok else replace(r, accepted=False, reason=r.reason if not r.accepted else "moved far by ICP")
+
+
+def check_vouched(via: PreparedMap, b: PreparedMap, hint: Hint, base: np.ndarray,
+                  params: MergeParams) -> MergeResult | None:
+    """A vouched hint accepted without refinement when its edge passes validation's thresholds on the
+    two maps it joins (b onto the via map, min_inliers aside: no ICP ran); its transform into the
+    reference frame is base (the via map's) @ the edge. None: refine and validate it as any hint."""
+    ag = agreement(via.summary, b.summary, hint.transform)
+    overlap = share(ag, via, b)
+    if rejection(ag, params.min_inliers, overlap, params) is not None:
+        return None
+    return MergeResult(True, base @ hint.transform, 0, ag.score, ag.agree, ag.conflicts, 0.0,
+                       "accepted", overlap, method=f"hint:{hint.source}")
 
 
 def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray, str]],
@@ -94,10 +117,13 @@ def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray,
     return None, refused, final
 
 
-def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_results) -> list[list[Hint]]:
+def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_results,
+              held: dict[int, int] | None = None) -> list[list[Hint]]:
     """Hints per input map (vehicle ids `vids`, in merge order) from our own last accepted transforms
     (`own`: vehicle id -> transform into our frame) and peers' results (objects with vehicle_id and
-    edges of a, b, transform carrying b's frame into a's, as wire.MergeResultMessage).
+    edges of a, b, transform carrying b's frame into a's, as wire.MergeResultMessage). held: the map
+    version we hold per vehicle id; a chained hint whose edge names exactly those versions of both
+    its maps is vouched.
 
     A peer vouches only for merges into its own frame (edges with a == its vehicle id). Its edge
     a->b gives b a hint directly when a is us, and the inverse to a when b is us; otherwise the
@@ -116,6 +142,7 @@ def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_re
             if e.a != msg.vehicle_id or e.a == e.b:
                 continue
             t = np.asarray(e.transform, dtype=np.float64)
+            vouched = held is not None and held.get(e.a) == e.version_a and held.get(e.b) == e.version_b
             for target, other, rel in ((e.b, e.a, t), (e.a, e.b, None)):
                 if target not in index or other == target:
                     continue
@@ -123,7 +150,7 @@ def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_re
                 if other == own_vid:
                     out[index[target]].append(Hint(rel, "peer"))
                 elif other in index:
-                    chained.append((index[target], Hint(rel, "peer", via=index[other])))
+                    chained.append((index[target], Hint(rel, "peer", via=index[other], vouched=vouched)))
     for i, h in chained:
         out[i].append(h)
     return [h[:MAX_HINTS] for h in out]

@@ -9,8 +9,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..grid import OccupancyGrid, fuse_transformed, resample
-from .hints import Hint, resolve, try_hints
-from .pair import MergeResult, comparable, merge_prepared, prepare
+from .hints import Hint, check_vouched, resolve, try_hints
+from .pair import MergeResult, comparable, distinct, merge_prepared, prepare
 from .params import MergeParams, coopd_params
 
 
@@ -25,6 +25,8 @@ class GlobalMergeResult:
     """Per input map: hint validations that failed (work spent on hints that did not serve)."""
     full_registrations: int = 0
     """Full searches run (a map retried in a later round counts again): the work hints save."""
+    vouched: int = 0
+    """Maps merged by a vouched hint (hints.check_vouched): checked, not refined."""
 
     @property
     def transforms(self) -> list[np.ndarray | None]:
@@ -86,6 +88,7 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
     prepared_others = [None] * len(others)
     refused = [0] * len(others)
     full = 0
+    checked = [0]
     merged: dict[int, np.ndarray] = {}
 
     def prepared(i: int, tm: dict):
@@ -106,6 +109,17 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
     tried_at: dict[int, int] = {}
     """Map -> maps merged when its hints were last tried: retried only once the global map grew."""
 
+    def vouched(i: int, live: list[int], tm: dict) -> MergeResult | None:
+        """Map i merged by its first vouched hint, when every live hint of it agrees with that one and
+        the check passes; None: its hints are refined and validated as usual."""
+        first = next((hints[i][k] for k in live if hints[i][k].vouched), None)
+        if first is None:
+            return None
+        t = resolve(first, merged)
+        if any(distinct(resolve(hints[i][k], merged), t) for k in live):
+            return None
+        return check_vouched(prepared(first.via, tm), prepared(i, tm), first, merged[first.via], params)
+
     def run_hints(todo: list[int]) -> None:
         """Try the hints of every map in todo, again as long as one of them merged."""
         progress = True
@@ -121,6 +135,12 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
                     continue
                 tm: dict = {}
                 t0 = time.perf_counter()
+                r = vouched(i, live, tm)
+                if r is not None:
+                    checked[0] += 1
+                    finish(i, r, tm, t0)
+                    progress = True
+                    continue
                 candidates = [(resolve(hints[i][k], merged), hints[i][k].source) for k in live]
                 r, n, final = try_hints(world.prepared(tm), prepared(i, tm), candidates, params)
                 refused[i] += n
@@ -157,4 +177,4 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         if results[i] is None:  # in hints_only, and no hint validated
             results[i] = MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0,
                                      "deferred: full search left to a peer's merge result", method="deferred")
-    return GlobalMergeResult(world.grid, results, rounds, refused, full)
+    return GlobalMergeResult(world.grid, results, rounds, refused, full, checked[0])

@@ -156,12 +156,12 @@ def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) 
     return Candidate(fit.transform, c.inliers, c.source)
 
 
-def _share(ag: Agreement, a: PreparedMap, b: PreparedMap) -> float:
+def share(ag: Agreement, a: PreparedMap, b: PreparedMap) -> float:
     """Agreeing share of both maps' vertical-structure samples."""
     return ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
 
 
-def _rejection(ag: Agreement, inliers: int, overlap: float, params: MergeParams) -> str | None:
+def rejection(ag: Agreement, inliers: int, overlap: float, params: MergeParams) -> str | None:
     """Why a validated hypothesis cannot be accepted on its own merits, or None."""
     if inliers < params.min_inliers:
         return f"{inliers} inliers < {params.min_inliers}"
@@ -180,8 +180,8 @@ def judge(a: PreparedMap, b: PreparedMap, transform: np.ndarray, params: MergePa
     c = _subcell(a, b, _refined(a, b, Candidate(np.asarray(transform, dtype=np.float64), 0, "given"), params),
                  params)
     ag = agreement(a.summary, b.summary, c.transform)
-    overlap = _share(ag, a, b)
-    reason = _rejection(ag, c.inliers, overlap, params) or "accepted"
+    overlap = share(ag, a, b)
+    reason = rejection(ag, c.inliers, overlap, params) or "accepted"
     return MergeResult(reason == "accepted", c.transform, c.inliers, ag.score, ag.agree, ag.conflicts, 0.0,
                        reason, overlap)
 
@@ -231,8 +231,8 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     tm["subcell"] = time.perf_counter() - t0
     runner = next((s for s in scored[1:] if distinct(s[2].transform, best.transform)), None)
     runner_score = runner[1].score if runner else 0.0
-    overlap = _share(best_ag, a, b)
-    reason = _rejection(best_ag, best.inliers, overlap, params) or "accepted"
+    overlap = share(best_ag, a, b)
+    reason = rejection(best_ag, best.inliers, overlap, params) or "accepted"
     if reason == "accepted" and runner is not None and runner[0] >= (1.0 - params.min_margin) * scored[0][0]:
         reason = f"{AMBIGUOUS}: a distinct hypothesis scores {runner[1].score:.3f} with support " \
                  f"{runner[0]:.0f} vs {scored[0][0]:.0f}"

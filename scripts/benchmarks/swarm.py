@@ -10,7 +10,9 @@ shares or merges while the others still start. Until every daemon:
   t_share   holds every other's map (status peers[].map_version),
   t_global  has N-1 accepted merge offsets (status merges.offsets), each checked against the
             flight's truth (translation error < --tol-m, yaw/rotation < --tol-deg; else "wrong").
-Also per daemon: merges done/failed/deferred, merging-thread and process CPU, peak RSS. When the
+Also per daemon: merges done/failed/deferred, merging-thread and process CPU, peak RSS, and per
+merged map its mean displacement (its occupied cells placed by the offset vs by the truth; the
+table's "shift m" is the median/max over all merges). When the
 daemon's config has `[merging] distributed`, every size runs both ways (the peer comparison).
 Prints a table and writes out/bench/swarm.json.
 With --transport mtp,zenoh every size also runs with the maps shared over Zenoh (peers on loopback,
@@ -44,6 +46,7 @@ from coopd.daemon.control import ControlError, request  # noqa: E402
 from coopd.daemon.merger import in_global_map  # noqa: E402
 from coopd.daemon.service import save_map_frame  # noqa: E402
 from coopd.geometry import rotation_angle_deg  # noqa: E402
+from coopd.grid.cells import OCCUPIED_THRESHOLD  # noqa: E402
 from coopd.sharing.wire import MapMeta  # noqa: E402
 from firmware_sim import simset  # noqa: E402
 from firmware_sim.swarm import render_config  # noqa: E402
@@ -77,9 +80,27 @@ def offset_errors(transform: list[float] | np.ndarray, truth: np.ndarray) -> tup
     return float(np.linalg.norm(t[:3, 3] - truth[:3, 3])), float(rot)
 
 
-def judge_offsets(offsets: dict, truths: dict[int, np.ndarray], tol_m: float, tol_deg: float) -> dict:
+def displacement_m(transform: list[float] | np.ndarray, truth: np.ndarray, points: np.ndarray) -> float:
+    """Mean distance between a map's points (its frame, metres) placed by a reported offset and by
+    the truth: the registration error over the whole map, not only at its origin."""
+    t = np.asarray(transform, dtype=np.float64).reshape(4, 4)
+    moved = points @ t[:3, :3].T + t[:3, 3]
+    true = points @ truth[:3, :3].T + truth[:3, 3]
+    return float(np.linalg.norm(moved - true, axis=1).mean()) if len(points) else 0.0
+
+
+def occupied_points(grid, max_points: int = 20_000) -> np.ndarray:
+    """Centres (metres) of a grid's occupied cells, thinned evenly to about max_points."""
+    keys = np.argwhere(grid.cells >= OCCUPIED_THRESHOLD)
+    keys = keys[:: max(1, len(keys) // max_points)]
+    return (keys + grid.offset) * grid.resolution
+
+
+def judge_offsets(offsets: dict, truths: dict[int, np.ndarray], tol_m: float, tol_deg: float,
+                  points: dict[int, np.ndarray] | None = None) -> dict:
     """One daemon's status merges.offsets against the truth per peer id: accepted, correct, wrong ids
-    and the errors of the accepted ones. A merge is correct within tol_m and tol_deg."""
+    and the errors of the accepted ones (translation m, rotation deg, and with points, the map's
+    mean displacement m). A merge is correct within tol_m and tol_deg."""
     out = {"accepted": [], "correct": [], "wrong": [], "errors": {}, "refused": {}}
     for key, o in sorted(offsets.items(), key=lambda kv: int(kv[0])):
         vid = int(key)
@@ -92,6 +113,8 @@ def judge_offsets(offsets: dict, truths: dict[int, np.ndarray], tol_m: float, to
         te, re = offset_errors(o["transform"], truths[vid])
         out["accepted"].append(vid)
         out["errors"][vid] = [round(te, 3), round(re, 2)]
+        if points is not None and vid in points:
+            out["errors"][vid].append(round(displacement_m(o["transform"], truths[vid], points[vid]), 3))
         out["correct" if te < tol_m and re < tol_deg else "wrong"].append(vid)
     return out
 
@@ -304,7 +327,8 @@ def run_size(maps: list, merging: dict, args, label: str, transport: str = "mtp"
             time.sleep(POLL_S)
         cpu1 = {vid: swarm.cpu(vid) for vid in swarm.ids}
         row["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
-        row |= summarise(swarm, last, cpu0, cpu1, truths, args, t_share, t_global, first_global)
+        points = {m.vehicle + 1: occupied_points(m.grid) for m in maps}
+        row |= summarise(swarm, last, cpu0, cpu1, truths, args, t_share, t_global, first_global, points)
         if t_global is not None and args.linger > 0:
             row["after_global"] = linger(swarm, last, cpu1, args.linger)
     finally:
@@ -342,8 +366,9 @@ def bytes_sent(sharing: dict) -> int:
 
 
 def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, args, t_share, t_global,
-              first_global) -> dict:
-    """The figures of one run from the daemons' last statuses."""
+              first_global, points: dict[int, np.ndarray] | None = None) -> dict:
+    """The figures of one run from the daemons' last statuses (points: each vehicle's occupied cell
+    centres, for the mean displacement of its map in every global map)."""
     daemons = []
     for vid in swarm.ids:
         st = last.get(vid)
@@ -352,7 +377,7 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
             continue
         merges = st["merges"]
         cpu = cpu1[vid]
-        j = judge_offsets(merges.get("offsets", {}), truths[vid], args.tol_m, args.tol_deg)
+        j = judge_offsets(merges.get("offsets", {}), truths[vid], args.tol_m, args.tol_deg, points)
         daemons.append({
             "vehicle": vid,
             "held_maps": sorted(p["vehicle_id"] for p in st["peers"] if p.get("map_version") is not None),
@@ -370,6 +395,7 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
         })
     ok = [d for d in daemons if "merges" in d]
     reported = [d["merge_cpu_s_reported"] for d in ok]
+    shifts = [e[2] for d in ok for e in d["errors"].values() if len(e) > 2]
     return {
         "t_share_s": None if t_share is None else round(t_share, 2),
         "t_global_s": None if t_global is None else round(t_global, 2),
@@ -387,6 +413,8 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
         "process_cpu_s": round(sum(d["process_cpu_s"] or 0.0 for d in ok), 2),
         "peak_rss_mib_max": max((d["peak_rss_mib"] for d in ok), default=None),
         "bytes_sent_per_drone": round(sum(d["bytes_sent"] for d in ok) / max(1, len(ok))),
+        "displacement_m": None if not shifts else {"median": round(float(np.median(shifts)), 3),
+                                                   "max": round(max(shifts), 3)},
         "daemons": daemons,
     }
 
@@ -399,7 +427,7 @@ def _delta(a, b):
 def table(rows: list[dict]) -> str:
     """The printed table: one line per size and mode."""
     head = ("N", "transport", "mode", "t_share", "t_global", "t_total", "merges", "accepted", "wrong",
-            "merge thr CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone")
+            "merge thr CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone", "shift m")
     lines = ["  ".join(f"{h:>9}" for h in head)]
     for r in rows:
         t_global = f"gave up {r['gave_up_at_s']:.0f}" if r.get("gave_up_at_s") else _s(r.get("t_global_s"))
@@ -408,7 +436,9 @@ def table(rows: list[dict]) -> str:
                  f"{r.get('accepted_offsets')}/{r.get('wanted_offsets')}", r.get("wrong_merges"),
                  _s(r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")), r.get("peak_rss_mib_max"),
                  _s((r.get("after_global") or {}).get("merging_thread_cpu_s")),
-                 None if r.get("bytes_sent_per_drone") is None else round(r["bytes_sent_per_drone"] / 1000))
+                 None if r.get("bytes_sent_per_drone") is None else round(r["bytes_sent_per_drone"] / 1000),
+                 "-" if not r.get("displacement_m") else
+                 f"{r['displacement_m']['median']:.2f}/{r['displacement_m']['max']:.2f}")
         lines.append("  ".join(f"{str(c):>9}" for c in cells))
     lines.append(f"thesis (§10.4, 10 drones): share {THESIS['t_share_s']} s, merge {THESIS['t_merge_s']} s, "
                  f"total {THESIS['t_total_s']} s; goal here: 10 drones <= {GOAL_TOTAL_S:.0f} s total")

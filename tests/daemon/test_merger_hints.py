@@ -41,13 +41,15 @@ def _result_message(vid, *edges):
         wire.MergeEdge(a, b, t, 0.97, 0.3, 1, 1, wire.EDGE_FULL) for a, b, t in edges))
 
 
-def _merger(chain, peer_results=(), distributed=True, published=None, vehicle_id=0, defer_full_s=0.0):
+def _merger(chain, peer_results=(), distributed=True, published=None, vehicle_id=0, defer_full_s=0.0,
+            published_version=None):
     received = [_stored(1, chain[1].grid), _stored(2, chain[2].grid)]
     budget = MemoryBudget(256 << 20, baseline_bytes=0)
     settings = MergerSettings(period_s=3600, distributed=distributed, defer_full_s=defer_full_s)
     sources = MergeSources(lambda: (chain[0].grid.copy(), 4), lambda: received,
                            peer_results=lambda: list(peer_results),
-                           publish_results=None if published is None else published.append)
+                           publish_results=None if published is None else published.append,
+                           published_version=published_version)
     return Merger(vehicle_id, settings, sources, budget, merge_fn=merge_all)
 
 
@@ -55,7 +57,7 @@ def _merger(chain, peer_results=(), distributed=True, published=None, vehicle_id
 @pytest.mark.cpu_bound
 def test_own_warm_start_replaces_the_full_search_and_validated_edges_are_published(chain):
     published = []
-    m = _merger(chain, published=published)
+    m = _merger(chain, published=published, published_version=lambda v: (7 << 32) | v)
     assert m.merge_once("first")["outcome"] == "done"
     s = m.status()
     assert s["full_registrations"] >= 2 and s["hinted"] == 0 and s["cpu_s"] > 0
@@ -63,7 +65,9 @@ def test_own_warm_start_replaces_the_full_search_and_validated_edges_are_publish
     first = published[-1]
     assert first.vehicle_id == 0 and [(e.a, e.b, e.flags) for e in first.edges] == [(0, 1, 1), (0, 2, 1)]
     assert all(_close(e.transform, _truth(chain, 0, e.b)) for e in first.edges)
-    assert wire.decode_merge_result(wire.encode_merge_result(first)).edges[0].version_a == 4
+    # an edge names our map's version as peers hold it (epoch 7, counter 4), and the other map's
+    decoded = wire.decode_merge_result(wire.encode_merge_result(first)).edges[0]
+    assert (decoded.version_a, decoded.version_b) == ((7 << 32) | 4, 1)
     cpu_first = s["cpu_s"]
     assert m.merge_once("again")["outcome"] == "done"
     s = m.status()
@@ -115,11 +119,15 @@ def test_a_higher_vehicle_id_leaves_the_full_search_to_the_lower_one_and_validat
     assert m.counters["full_registrations"] == 0
     assert all(not o["accepted"] and o["reason"].startswith("deferred") for o in m.offsets.values())
     requested = m.trigger.requested
-    m.on_peer_result()  # a result arrived and maps are left out: merge again
+    m.on_peer_result()  # a result arrived and maps are left out: merge again, at once (the awaited answer)
     assert m.trigger.requested == requested + 1
+    later = time.monotonic() + 3600
+    assert m.trigger.wait_due(later, later, m.settings, lambda: None, 0.05)[1] is True
     peer.append(_result_message(1, (1, 5, _truth(chain, 1, 0)), (1, 2, _truth(chain, 1, 2))))
     assert m.merge_once()["outcome"] == "done"
     assert m.counters["full_registrations"] == 0 and m.counters["hinted_peer"] == 2
+    # 1's edge to 2 names the versions of maps 1 and 2 we hold: checked, not refined
+    assert m.counters["hinted_vouched"] == 1
     assert all(_close(np.reshape(o["transform"], (4, 4)), _truth(chain, 0, v)) for v, o in m.offsets.items())
     requested = m.trigger.requested
     m.on_peer_result()  # nothing left out: no merge for it

@@ -83,9 +83,52 @@ def test_chained_hints_resolve_through_the_map_they_lean_on(chain):
     assert _close(res.results[1].transform, _truth(chain, 0, 1))
 
 
-def _msg(vid, *edges):
-    return SimpleNamespace(vehicle_id=vid,
-                           edges=[SimpleNamespace(a=a, b=b, transform=t) for a, b, t in edges])
+@pytest.mark.slow
+@pytest.mark.cpu_bound
+def test_a_vouched_chain_is_checked_not_refined_and_a_wrong_one_is_refined_and_refused(chain):
+    """Map 2 vouched via map 1 (a peer merged them on the very versions we hold): accepted by the
+    check alone, at (map 1's transform) @ the edge, for a fraction of the CPU of refining it. A
+    vouched edge turned by 180 degrees fails the check and goes the usual way: refined, refused,
+    and the full search places the map."""
+    t12, t01 = _truth(chain, 1, 2), _truth(chain, 0, 1)
+    maps = [chain[2].grid, chain[1].grid]
+
+    def run(edge, vouched):
+        hints = [[Hint(edge, "peer", via=1, vouched=vouched)], [Hint(t01, "peer")]]
+        return _cpu(lambda: merge_all(chain[0].grid, maps, hints=hints))
+
+    refined, cpu_refined = run(t12, False)
+    checked, cpu_checked = run(t12, True)
+    assert checked.vouched == 1 and refined.vouched == 0 and checked.full_registrations == 0
+    r = checked.results[0]
+    assert r.accepted and r.method == "hint:peer" and r.inliers == 0
+    assert np.allclose(r.transform, checked.results[1].transform @ t12)
+    assert _close(r.transform, _truth(chain, 0, 2))
+    assert cpu_checked < cpu_refined, (cpu_checked, cpu_refined)
+    wrong = rigid(rotation_z(np.pi), [0.0, 0.0, 0.0]) @ t12
+    res, _ = run(wrong, True)
+    assert res.vouched == 0 and res.hints_refused[0] == 1 and res.full_registrations == 1
+    assert res.results[0].method == "full" and _close(res.results[0].transform, _truth(chain, 0, 2))
+
+
+def _msg(vid, *edges, versions=(0, 0)):
+    va, vb = versions
+    edge = [SimpleNamespace(a=a, b=b, transform=t, version_a=va, version_b=vb) for a, b, t in edges]
+    return SimpleNamespace(vehicle_id=vid, edges=edge)
+
+
+def test_hints_for_vouches_for_a_chained_edge_only_on_the_versions_we_hold():
+    t = rigid(rotation_z(0.2), [1.0, 2.0, 0.0])
+    held = {9: 70, 2: 20, 3: 30}
+    peers = [_msg(2, (2, 9, t), versions=(20, 70)), _msg(2, (2, 3, t), versions=(20, 30))]
+    hints = hints_for(9, [2, 3], {}, peers, held)
+    # the link to the peer is validated here; the peer's edge to 3 also vouches for 2 via 3
+    assert [(h.via, h.vouched) for h in hints[0]] == [(None, False), (1, True)]
+    assert [(h.via, h.vouched) for h in hints[1]] == [(0, True)]
+    for stale in ((20, 29), (19, 30)):  # a map changed since the peer merged it
+        hints = hints_for(9, [2, 3], {}, [_msg(2, (2, 3, t), versions=stale)], held)
+        assert [(h.via, h.vouched) for h in hints[1]] == [(0, False)]
+    assert not hints_for(9, [2, 3], {}, peers)[1][0].vouched  # no versions known: never vouched
 
 
 def test_hints_for_composes_own_direct_and_chained_hints():

@@ -58,6 +58,18 @@ def test_judge_offsets_tells_correct_from_wrong_merges():
     assert j["accepted"] == [] and j["refused"][2].startswith("provisional")
 
 
+def test_displacement_is_the_mean_shift_of_the_maps_points():
+    truth = rigid(rotation_z(math.radians(30)), [2.0, -1.0, 0.5])
+    points = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    shifted = rigid(None, [0.1, 0.0, 0.0]) @ truth
+    assert abs(swarm.displacement_m(offset_summary(shifted)["transform"], truth, points) - 0.1) < 1e-4
+    turned = truth @ rigid(rotation_z(math.radians(1)))  # 1 deg about the map origin: 0 and 0.175 m
+    assert abs(swarm.displacement_m(turned, truth, points) - 10 * math.radians(1) / 2) < 1e-3
+    st = status(1, accepted=[2], transforms={2: shifted})
+    j = swarm.judge_offsets(st["merges"]["offsets"], {2: truth}, 0.3, 3.0, {2: points})
+    assert abs(j["errors"][2][2] - 0.1) < 1e-3
+
+
 def test_offset_errors_reads_the_status_transform_row_major():
     t = rigid(rotation_z(0.2), [1.0, 2.0, 3.0])
     assert max(swarm.offset_errors(offset_summary(t)["transform"], t)) < 1e-4
