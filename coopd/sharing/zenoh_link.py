@@ -172,6 +172,10 @@ def zenoh_config(settings: ZenohSettings, max_message_bytes: int):
         conf.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     conf.insert_json5("transport/link/rx/max_message_size", str(max_message_bytes))
+    # Shared memory only serves Zenoh sessions on this host (other vehicles are other hosts), and would
+    # reserve a pool (16 MiB by default) the memory budget does not see; off, a session on loopback
+    # (tests, benchmarks, a simulated swarm) carries maps over TCP as the network does.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     tls = tls_config(settings)
     if tls is not None:
         conf.insert_json5("transport/link/tls", json.dumps(tls))
