@@ -3,6 +3,8 @@ drones whose certificates the swarm CA signed exchange a map while a host holdin
 no such certificate gets nothing. Sessions listen and connect on 127.0.0.1 only, multicast off."""
 
 import json
+import shutil
+import subprocess
 
 import pytest
 import sharing_testmsg as tm
@@ -12,6 +14,7 @@ from tls_certs import TestCA
 from coopd.daemon.config import ConfigError, from_dict
 from coopd.sharing.service import SharingConfig, SharingService
 from coopd.sharing.zenoh_link import ZenohSettings, zenoh_config
+from tests.docs_examples import tls_recipe
 from tests.ports import zenoh_port
 
 zenoh = pytest.importorskip("zenoh")
@@ -141,5 +144,30 @@ def test_only_drones_with_a_swarm_certificate_get_the_map(pki, protocol):
     finally:
         for o in outsiders:
             o.close()
+        b.stop()
+        a.stop()
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
+def test_the_openssl_recipe_in_the_docs_makes_certificates_that_work(tmp_path):
+    """The commands of docs/sharing.md as printed (drone 3's address made 127.0.0.1, and run for drones
+    1 and 2): coopd's checks take the files, and the two drones exchange a map over TLS."""
+    make_ca, make_drone = tls_recipe()
+
+    def sh(script: str) -> None:
+        subprocess.run(["sh", "-e", "-c", script], cwd=tmp_path, check=True, capture_output=True, timeout=60)
+
+    sh(make_ca)
+    for n in (1, 2):
+        sh(make_drone.replace("drone3", f"drone{n}").replace("10.42.0.3", "127.0.0.1"))
+    ca = str(tmp_path / "swarm-ca.pem")
+    pairs = [(str(tmp_path / f"drone{n}.pem"), str(tmp_path / f"drone{n}.key")) for n in (1, 2)]
+    ports = [zenoh_port() for _ in range(2)]
+    a = node(1, tls_settings(ports[0], ca=ca, pair=pairs[0]))
+    b = node(2, tls_settings(ports[1], [ports[0]], ca=ca, pair=pairs[1]))
+    try:
+        a.publish(tm.make(1, 3, b"recipe"), 3)
+        assert wait_until(lambda: b.received.version(1) == 3, 10), (a.stats()["zenoh"], b.stats()["zenoh"])
+    finally:
         b.stop()
         a.stop()
