@@ -416,7 +416,9 @@ def _build(cls, table, prefix: str):
     except ConfigError:
         raise
     except (ValueError, TypeError) as e:
-        named = [n for n in known if re.search(rf"\b{re.escape(n)}\b", str(e))]
+        # the key the message starts with ("tls_root_ca: ..."), else the one key it names
+        named = ([n for n in known if str(e).startswith(f"{n}:")]
+                 or [n for n in known if re.search(rf"\b{re.escape(n)}\b", str(e))])
         raise ConfigError(_join(prefix, named[0]) if len(named) == 1 else prefix, str(e)) from e
 
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 from .peers import VEHICLE_IDS
 from .transport import Arrival, DropLog, Rejected
+from .zenoh_tls import check_tls, describe_tls, tls_config
 
 log = logging.getLogger("coopd.sharing")
 
@@ -74,6 +75,16 @@ class ZenohSettings:
                                     ())
     multicast_scouting: bool = _doc("find peers by UDP multicast scouting (off: connect endpoints and "
                                     "gossip only)", True)
+    tls_root_ca: str = _doc("PEM file of the swarm CA's certificate: peers' certificates must be signed by "
+                            "it (needed with tls/ or quic/ endpoints; empty: no TLS)", "")
+    tls_certificate: str = _doc("PEM file of this drone's certificate, signed by the swarm CA, presented on "
+                                "every TLS link", "")
+    tls_private_key: str = _doc("PEM file of that certificate's private key (unencrypted; readable by coopd "
+                                "only)", "")
+    tls_client_auth: bool = _doc("mutual TLS: a peer connecting to us must present a certificate the swarm "
+                                 "CA signed, and we present ours when connecting", True)
+    tls_verify_name: bool = _doc("when connecting, the peer's certificate must name the address connected "
+                                 "to (subjectAltName); false: any certificate the swarm CA signed", True)
 
     def __post_init__(self):
         if not SWARM_NAME.match(self.swarm):
@@ -84,6 +95,7 @@ class ZenohSettings:
             if not ENDPOINT.match(e):
                 raise ValueError(f"endpoint {e!r} is not PROTOCOL/ADDRESS (tcp/10.0.0.1:7447, "
                                  "quic/..., tls/...)")
+        check_tls(self)
 
 
 def key_expr(swarm: str, vehicle_id: int, kind: str) -> str:
@@ -160,6 +172,13 @@ def zenoh_config(settings: ZenohSettings, max_message_bytes: int):
         conf.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     conf.insert_json5("transport/link/rx/max_message_size", str(max_message_bytes))
+    # Shared memory only serves Zenoh sessions on this host (other vehicles are other hosts), and would
+    # reserve a pool (16 MiB by default) the memory budget does not see; off, a session on loopback
+    # (tests, benchmarks, a simulated swarm) carries maps over TCP as the network does.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    tls = tls_config(settings)
+    if tls is not None:
+        conf.insert_json5("transport/link/tls", json.dumps(tls))
     return conf
 
 
@@ -219,9 +238,9 @@ class ZenohLink:
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
-        log.info("zenoh: %s %s as vehicle %d (listen %s, connect %s, multicast scouting %s, %s)", s.mode,
-                 self.session.zid(), self.vehicle_id, ", ".join(s.listen) or "default",
-                 ", ".join(s.connect) or "none", "on" if s.multicast_scouting else "off",
+        log.info("zenoh: %s %s as vehicle %d (listen %s, connect %s, multicast scouting %s, %s, %s)",
+                 s.mode, self.session.zid(), self.vehicle_id, ", ".join(s.listen) or "default",
+                 ", ".join(s.connect) or "none", "on" if s.multicast_scouting else "off", describe_tls(s),
                  "sealed with the swarm key" if self._cipher else "OPEN: no swarm key")
         return self
 

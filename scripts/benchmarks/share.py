@@ -16,7 +16,12 @@ once with deltas off and once on, each version acknowledged before the next. Rep
 bytes sent (frames and data blocks; acks and TCP/IP headers not counted) per minute of flight, over the
 whole flight and in steady exploration (after the first --steady-after-s seconds), and the ratio; the
 receiver's last map is checked to be the sender's byte for byte. Writes out/bench/share_delta.json.
+With --transport zenoh (or mtp,zenoh) the same recording also goes over Zenoh (two Zenoh-only services
+on loopback TCP, shared memory off as always): the envelopes the drone put (counted once per publication,
+however many subscribers) and the TCP payload bytes its session sent on the link (the kernel's count,
+read with ss: Zenoh's framing, declarations and keep-alives included), and the link's idle upkeep.
 Usage: scripts/bench share --delta [--world hospital] [--drones 3] [--block-sizes 4096,1024]
+       [--transport mtp,zenoh]
 """
 
 import argparse
@@ -163,50 +168,158 @@ def flight_recording(world: str, seed: int, drones: int) -> list[list[tuple[floa
     return out
 
 
-def replay(sequence, deltas: bool, block_size: int, steady_after_s: float, brick_edge: int) -> dict:
-    """One drone's recorded maps from a SharingService to another on loopback, each version acknowledged
-    before the next; MTP bytes the sender sent, over the flight and after steady_after_s."""
-    settings = replace(SETTINGS, block_size=block_size, read_timeout=5.0, transfer_base_s=10.0)
-    verify = wire_verifier(settings.max_cells, settings.max_bytes)
-    rx = SharingService(SharingConfig(vehicle_id=200, listen_host="127.0.0.1", port=0, deltas=deltas,
-                                      transport=settings), inspect=wire_inspect, verify=verify).start()
-    vid = wire.peek(sequence[0][1]).vehicle_id
-    tx = SharingService(SharingConfig(vehicle_id=vid, listen_host="127.0.0.2", port=0, deltas=deltas,
-                                      delta_brick_edge=brick_edge, peers=(f"127.0.0.1:{rx.address[1]}",),
-                                      scan_period=0.1, transport=settings)).start()
+RX_VID = 200
+"""The receiving vehicle of a replay."""
+IDLE_SAMPLE_S = 5.0
+"""--transport zenoh: seconds the link is watched idle before a replay, for its upkeep in bytes per minute."""
+
+
+class MtpPair:
+    """A sender and a receiver SharingService over MTP on loopback: the receiver acknowledges each
+    version. Counts what the sender's MTP link to the receiver sent: map/delta messages, and on the wire
+    hello, frames and data blocks (acks and TCP/IP headers not counted)."""
+
+    transport = "mtp"
+
+    def __init__(self, vid: int, deltas: bool, block_size: int, brick_edge: int):
+        settings = replace(SETTINGS, block_size=block_size, read_timeout=5.0, transfer_base_s=10.0)
+        verify = wire_verifier(settings.max_cells, settings.max_bytes)
+        self.vid = vid
+        self.rx = SharingService(SharingConfig(vehicle_id=RX_VID, listen_host="127.0.0.1", port=0,
+                                               deltas=deltas, transport=settings),
+                                 inspect=wire_inspect, verify=verify).start()
+        self.tx = SharingService(SharingConfig(vehicle_id=vid, listen_host="127.0.0.2", port=0, deltas=deltas,
+                                               delta_brick_edge=brick_edge, scan_period=0.1,
+                                               transport=settings, peers=(f"127.0.0.1:{self.rx.address[1]}",))
+                                 ).start()
+
+    def publish(self, message: bytes, version: int, grid) -> None:
+        self.tx.publish(message, version, grid)
+
+    def delivered(self, version: int) -> bool:
+        return self.tx.peers.has_version(RX_VID, self.vid) == version  # stored, acknowledged and counted
+
+    def counters(self) -> dict:
+        p = peer(self.tx, RX_VID)
+        return {"message_bytes": p["bytes_sent"], "wire_bytes": p["wire_bytes_sent"],
+                "maps_sent": p["maps_sent"], "deltas_sent": p["deltas_sent"],
+                "delta_fallbacks": p["delta_fallbacks"]}
+
+    def stop(self) -> None:
+        self.tx.stop()
+        self.rx.stop()
+
+
+class ZenohPair:
+    """A sender and a receiver SharingService over Zenoh on loopback (TCP endpoints on 127.0.0.1, multicast
+    scouting off; the receiver connects to the sender). Nothing is acknowledged: a version is delivered when
+    the receiver holds it and the sender counted its put. Counts the envelopes the sender put or replied
+    with (Zenoh's bytes_out: once per publication, whatever the number of subscribers) and on the wire
+    the TCP payload bytes the sender's session sent on its link, as the kernel counts them (ss):
+    Zenoh's framing, declarations and keep-alives included, TCP/IP headers not."""
+
+    transport = "zenoh"
+
+    def __init__(self, vid: int, deltas: bool, brick_edge: int, idle_sample_s: float = IDLE_SAMPLE_S):
+        from coopd.sharing.zenoh_link import ZenohSettings
+        from tests.ports import zenoh_port
+
+        verify = wire_verifier(SETTINGS.max_cells, SETTINGS.max_bytes)
+        self.vid, self.ports, self.puts = vid, (zenoh_port(), zenoh_port()), 0
+
+        def zenoh(listen: int, connect=()):
+            return ZenohSettings(swarm="bench", listen=(f"tcp/127.0.0.1:{listen}",),
+                                 connect=tuple(f"tcp/127.0.0.1:{p}" for p in connect),
+                                 multicast_scouting=False)
+
+        self.tx = SharingService(SharingConfig(vehicle_id=vid, mtp=False, deltas=deltas,
+                                               delta_brick_edge=brick_edge, zenoh=zenoh(self.ports[0]),
+                                               transport=SETTINGS)).start()
+        self.rx = SharingService(SharingConfig(vehicle_id=RX_VID, mtp=False, deltas=deltas,
+                                               zenoh=zenoh(self.ports[1], [self.ports[0]]),
+                                               transport=SETTINGS),
+                                 inspect=wire_inspect, verify=verify).start()
+        try:
+            deadline = time.monotonic() + 15.0
+            while not self.tx.stats()["zenoh"]["peers"]:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the Zenoh sessions did not connect within 15 s")
+                time.sleep(0.01)
+            before = self.link_bytes_sent()
+            time.sleep(idle_sample_s)
+            self.idle_bytes_per_min = round((self.link_bytes_sent() - before) * 60 / idle_sample_s)
+        except BaseException:
+            self.stop()
+            raise
+
+    def link_bytes_sent(self) -> int:
+        """TCP payload bytes sent so far by the sender's sockets of the link: those on its listening port,
+        and any it opened to the receiver's."""
+        out = subprocess.run(["ss", "-tinH", "state", "established",
+                              f"( sport = :{self.ports[0]} or dport = :{self.ports[1]} )"],
+                             check=True, capture_output=True, text=True, timeout=10).stdout
+        counts = [int(w.split(":", 1)[1]) for w in out.split() if w.startswith("bytes_sent:")]
+        if not counts:
+            raise RuntimeError(f"ss shows no bytes_sent for the Zenoh link (kernel >= 4.19 needed): {out!r}")
+        return sum(counts)
+
+    def publish(self, message: bytes, version: int, grid) -> None:
+        self.tx.publish(message, version, grid)
+        self.puts += 1
+
+    def delivered(self, version: int) -> bool:
+        z = self.tx.stats()["zenoh"]
+        return (self.rx.received.version(self.vid) == version
+                and z.get("published", 0) + z.get("published_delta", 0) == self.puts)
+
+    def counters(self) -> dict:
+        z = self.tx.stats()["zenoh"]
+        return {"message_bytes": z.get("bytes_out", 0), "wire_bytes": self.link_bytes_sent(),
+                "maps_sent": z.get("published", 0), "deltas_sent": z.get("published_delta", 0),
+                "delta_fallbacks": self.rx.stats()["zenoh"].get("delta_refetch", 0)}
+
+    def stop(self) -> None:
+        self.rx.stop()
+        self.tx.stop()
+
+
+def replay(sequence, pair, steady_after_s: float) -> dict:
+    """One drone's recorded maps from pair.tx to pair.rx, each version delivered before the next; what
+    the sender sent (pair.counters()), over the flight and after steady_after_s."""
     steady_from = None
     publish_s = []
     try:
         for t, message in sequence:
             grid, meta = wire.decode_map(message)
             if steady_from is None and t >= steady_after_s:
-                steady_from = peer(tx, 200)
+                steady_from = pair.counters()
             t0 = time.perf_counter()
-            tx.publish(message, meta.version, grid)
+            pair.publish(message, meta.version, grid)
             publish_s.append(time.perf_counter() - t0)
             deadline = time.monotonic() + 30.0
-            while tx.peers.has_version(200, vid) != meta.version:  # stored, acknowledged and counted
+            while not pair.delivered(meta.version):
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"vehicle {vid} v{meta.version} did not arrive within 30 s")
+                    raise RuntimeError(f"vehicle {pair.vid} v{meta.version} did not arrive within 30 s")
                 time.sleep(0.002)
-        identical = bytes(rx.received.get(vid).data) == sequence[-1][1]
-        last = peer(tx, 200)
+        identical = bytes(pair.rx.received.get(pair.vid).data) == sequence[-1][1]
+        last = pair.counters()
     finally:
-        tx.stop()
-        rx.stop()
+        pair.stop()
     flight_s = sequence[-1][0]
     steady_from = steady_from or last
     steady_s = max(flight_s - steady_after_s, 1e-9)
+
+    def steady_per_min(key: str) -> int:
+        return round((last[key] - steady_from[key]) * 60 / steady_s)
+
     return {"versions": len(sequence), "flight_s": round(flight_s, 1), "identical": identical,
-            "maps_sent": last["maps_sent"], "deltas_sent": last["deltas_sent"],
-            "delta_fallbacks": last["delta_fallbacks"], "message_bytes": last["bytes_sent"],
-            "wire_bytes": last["wire_bytes_sent"],
-            "wire_bytes_per_min": round(last["wire_bytes_sent"] * 60 / flight_s),
-            "steady_wire_bytes_per_min": round((last["wire_bytes_sent"] - steady_from["wire_bytes_sent"]) * 60
-                                               / steady_s),
-            "steady_message_bytes_per_min": round((last["bytes_sent"] - steady_from["bytes_sent"]) * 60
-                                                  / steady_s),
-            "publish_ms_mean": round(1000 * sum(publish_s) / len(publish_s), 2)}
+            **{k: last[k] for k in ("maps_sent", "deltas_sent", "delta_fallbacks", "message_bytes",
+                                    "wire_bytes")},
+            "wire_bytes_per_min": round(last["wire_bytes"] * 60 / flight_s),
+            "steady_wire_bytes_per_min": steady_per_min("wire_bytes"),
+            "steady_message_bytes_per_min": steady_per_min("message_bytes"),
+            "publish_ms_mean": round(1000 * sum(publish_s) / len(publish_s), 2),
+            **({"idle_link_bytes_per_min": pair.idle_bytes_per_min} if pair.transport == "zenoh" else {})}
 
 
 def delta_costs(size: str = "25M") -> dict:
@@ -250,33 +363,50 @@ def peer(svc: SharingService, vid: int) -> dict:
     return next(p for p in svc.stats()["peers"] if p["vehicle_id"] == vid)
 
 
-def run_delta(world: str, seed: int, drones: int, block_sizes, steady_after_s: float,
-              brick_edge: int) -> dict:
+WHAT = {
+    "mtp": "MTP bytes one drone sends one peer (wire: hello, frames and data blocks; acks and TCP/IP headers "
+           "not counted)",
+    "zenoh": "Zenoh bytes one drone sends (message: envelopes put or replied, counted once per publication "
+             "whatever the number of subscribers; wire: TCP payload its session sent on its one link, Zenoh "
+             "framing, declarations and keep-alives included, TCP/IP headers not; with more peers each link "
+             "carries it again)",
+}
+
+
+def run_delta(world: str, seed: int, drones: int, block_sizes, steady_after_s: float, brick_edge: int,
+              transports=("mtp",)) -> dict:
     warm_up()
     recording = flight_recording(world, seed, drones)
+    setups = [("mtp", bs) for bs in block_sizes if "mtp" in transports]
+    setups += [("zenoh", None)] * ("zenoh" in transports)  # Zenoh has no block size
     rows = []
-    for bs in block_sizes:
+    for transport, bs in setups:
         for deltas in (False, True):
-            per_drone = [replay(seq, deltas, bs, steady_after_s, brick_edge) for seq in recording]
+            per_drone = []
+            for seq in recording:
+                vid = wire.peek(seq[0][1]).vehicle_id
+                pair = (MtpPair(vid, deltas, bs, brick_edge) if transport == "mtp"
+                        else ZenohPair(vid, deltas, brick_edge))
+                per_drone.append(replay(seq, pair, steady_after_s))
             keys = ("wire_bytes_per_min", "steady_wire_bytes_per_min", "steady_message_bytes_per_min")
             mean = {k: round(sum(d[k] for d in per_drone) / len(per_drone)) for k in keys}
-            rows.append({"block_size": bs, "deltas": deltas, **mean, "per_drone": per_drone})
-            print(f"block {bs} deltas {deltas}: {mean}", file=sys.stderr)
+            rows.append({"transport": transport, "block_size": bs, "deltas": deltas, **mean,
+                         "per_drone": per_drone})
+            print(f"{transport} block {bs} deltas {deltas}: {mean}", file=sys.stderr)
     ratios = []
-    for bs in block_sizes:
-        full, dlt = (next(r for r in rows if r["block_size"] == bs and r["deltas"] is d)
-                     for d in (False, True))
-        ratios.append({"block_size": bs,
+    for transport, bs in setups:
+        full, dlt = (next(r for r in rows if (r["transport"], r["block_size"], r["deltas"]) == setup)
+                     for setup in ((transport, bs, False), (transport, bs, True)))
+        ratios.append({"transport": transport, "block_size": bs,
                        **{f"{k}ratio": _ratio(full[f"{k}bytes_per_min"], dlt[f"{k}bytes_per_min"])
                           for k in ("wire_", "steady_wire_", "steady_message_")}})
-    default = next(r for r in ratios if r["block_size"] == block_sizes[0])
+    judged = {t: next(r for r in ratios if r["transport"] == t) for t in transports}  # first block size
     return {"benchmark": "share --delta", "host": platform.node(), "cpus": os.cpu_count(), "world": world,
             "seed": seed, "drones": drones, "brick_edge": brick_edge, "steady_after_s": steady_after_s,
-            "what": "MTP bytes one drone sends one peer per minute of flight (frames + data blocks; acks and "
-                    "TCP/IP headers not counted), its map published every second it changed, full maps vs "
-                    "deltas; steady = after steady_after_s",
+            "what": {t: WHAT[t] + " per minute of flight, its map published every second it changed, full "
+                     "maps vs deltas; steady = after steady_after_s" for t in transports},
             "ratios": ratios, "goal_steady_ratio": DELTA_GOAL_RATIO,
-            "goal_met": (default["steady_wire_ratio"] or 0) >= DELTA_GOAL_RATIO,
+            "goal_met": {t: (r["steady_wire_ratio"] or 0) >= DELTA_GOAL_RATIO for t, r in judged.items()},
             "all_identical": all(d["identical"] for r in rows for d in r["per_drone"]),
             "costs_25M": delta_costs(), "runs": rows}
 
@@ -443,6 +573,8 @@ def main() -> None:
     ap.add_argument("--block-sizes", default="4096,1024",
                     help="--delta: MTP block sizes (the first one is the one judged against the goal)")
     ap.add_argument("--steady-after-s", type=float, default=30.0)
+    ap.add_argument("--transport", default="mtp",
+                    help="--delta: mtp, zenoh or mtp,zenoh (the same recorded flight over each)")
     ap.add_argument("--brick-edge", type=int, default=DEFAULT_BRICK_EDGE)
     ap.add_argument("--key", action="store_true",
                     help="both ends hold a swarm key: transfers authenticated (HMAC) and encrypted (AEAD)")
@@ -458,8 +590,11 @@ def main() -> None:
         print(json.dumps(send_runs(host, int(port), size, enc, int(repeat), int(version))))
         return
     if args.delta:
+        transports = [t for t in args.transport.split(",") if t]
+        if not transports or not set(transports) <= {"mtp", "zenoh"}:
+            ap.error("--transport: mtp and/or zenoh, comma-separated")
         report = run_delta(args.world, args.seed, args.drones, [int(b) for b in args.block_sizes.split(",")],
-                           args.steady_after_s, args.brick_edge)
+                           args.steady_after_s, args.brick_edge, transports)
         text = json.dumps(report, indent=2)
         print(text)
         (ROOT / "out" / "bench").mkdir(parents=True, exist_ok=True)

@@ -62,6 +62,15 @@ def test_settings_are_checked():
             ZenohSettings(**bad)
 
 
+def test_shared_memory_is_off_so_maps_cross_tcp_even_on_one_host():
+    import json
+
+    from coopd.sharing.zenoh_link import zenoh_config
+
+    conf = zenoh_config(ZenohSettings(listen=("tcp/127.0.0.1:7447",)), 1 << 20)
+    assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
+
+
 def node(vid: int, listen_port: int, connect=(), key: bytes | None = KEY, swarm: str = "t",
          mode: str = "peer") -> SharingService:
     z = ZenohSettings(swarm=swarm, mode=mode, listen=(f"tcp/127.0.0.1:{listen_port}",),
