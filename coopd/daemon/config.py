@@ -263,6 +263,10 @@ class MergingConfig:
         "distributed: a map a peer merged on exactly the map versions we hold is placed by its edge, "
         "checked, not refined (false: refined here too, about ten times the CPU per map)", True
     )
+    search_threads: int = _key(
+        "full searches of maps merged here for the first time run this many at a time (their fits are "
+        "held provisional, so the results are those of one at a time)", 2, _between(1, 8, "")
+    )
     recheck_growth: float = _key(
         "search a merged map again, its transform competing, once the pair's known cells grew this much",
         1.3, _between(1.05, 100.0, "x"),

@@ -56,6 +56,9 @@ class MergerSettings:
     vouched: bool = True
     """Distributed: a peer's edge found on exactly the map versions we hold is checked, not refined
     (coopd.merging.hints, vouched hints)."""
+    search_threads: int = 1
+    """With confirm_before_fusing: full searches of maps whose fit would be held run this many at a
+    time (merge_all ahead/workers)."""
     recheck_growth: float | None = 1.3
     """A merged map is searched again, its known transforms competing, once the known cells of it
     and our map grew this much since it was last decided: a transform accepted on small early maps
@@ -81,6 +84,7 @@ class MergerSettings:
             distributed=merging.distributed,
             defer_full_s=merging.defer_full_s,
             vouched=merging.vouched,
+            search_threads=merging.search_threads,
             recheck_growth=merging.recheck_growth,
             confirm_before_fusing=merging.confirm_before_fusing,
         )
@@ -288,6 +292,12 @@ class FitBook:
         settled = rules.stopped_growing(size, p.last_size)
         due = self._due(p, size, recheck_growth)
         return rules.held_provisional(method, new_fit, p.provisional, settled, due)
+
+    def holds_any_fit(self, vid: int, size: int) -> bool:
+        """Whether any accepted full-search result of vid's map would be held (holds): a pair never
+        fitted, still growing, takes its first fit as a new one and holds it until it settles."""
+        p = self._pairs.get(vid, PairRecord())
+        return p.transform is None and not rules.stopped_growing(size, p.last_size)
 
     @staticmethod
     def _due(p: PairRecord, size: int, recheck_growth: float | None) -> bool:

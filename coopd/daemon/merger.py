@@ -318,7 +318,8 @@ class Merger:
     def _merge_options(self, vids: list[int], sizes: list[int], hints: list[list], hints_only: frozenset[int],
                        contest: frozenset[int], held: set[int]) -> dict:
         """merge_all's keyword arguments, each only when it says something: hold (with
-        confirm_before_fusing: FitBook.holds, collecting the held vehicle ids in `held`), hints,
+        confirm_before_fusing: FitBook.holds, collecting the held vehicle ids in `held`; then also
+        the searches that may run ahead, FitBook.holds_any_fit, on search_threads), hints,
         hints_only (searches deferred to a peer) and contest (maps rechecked)."""
         options = {}
         if self.settings.confirm_before_fusing:
@@ -331,6 +332,9 @@ class Merger:
                 return False
 
             options["hold"] = hold
+            if self.settings.search_threads > 1:
+                options["ahead"] = lambda i: self.book.holds_any_fit(vids[i], sizes[i])
+                options["workers"] = self.settings.search_threads
         if any(hints):
             options["hints"] = hints
         if hints_only:
@@ -391,6 +395,7 @@ class Merger:
         c["hinted_peer"] += methods.count("hint:peer")
         c["hint_rejected"] += sum(getattr(result, "hints_refused", []))
         c["hinted_vouched"] += getattr(result, "vouched", 0)
+        self.cpu_s += getattr(result, "worker_cpu_s", 0.0)  # searches run on worker threads
 
     def _publish(self, edges: list[MergeEdge]) -> None:
         """Publish our validated merges for peers (only when distributed and they changed)."""

@@ -4,13 +4,14 @@ inheritance). Every merged map's transform into the global (= reference) frame i
 
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..grid import OccupancyGrid, fuse_transformed, resample
 from .hints import Hint, check_vouched, resolve, try_hints
-from .pair import MergeResult, comparable, distinct, merge_prepared, prepare
+from .pair import MergeResult, comparable, complete, distinct, merge_prepared, prepare
 from .params import MergeParams, coopd_params
 
 
@@ -27,6 +28,9 @@ class GlobalMergeResult:
     """Full searches run (a map retried in a later round counts again): the work hints save."""
     vouched: int = 0
     """Maps merged by a vouched hint (hints.check_vouched): checked, not refined."""
+    worker_cpu_s: float = 0.0
+    """CPU time of the searches run on worker threads (workers > 1), which the caller's thread time
+    does not include."""
 
     @property
     def transforms(self) -> list[np.ndarray | None]:
@@ -47,6 +51,8 @@ class _World:
         self.grid = reference.copy()
         self.params = params
         self._prepared = None
+        self.generation = 0
+        """Maps fused so far: a search's result holds only for the global map it ran on."""
 
     def prepared(self, tm: dict):
         if self._prepared is None:
@@ -59,13 +65,75 @@ class _World:
         fuse_transformed(self.grid, same, transform, self.params.occupied_threshold)
         tm["fuse"] = time.perf_counter() - t0
         self._prepared = None
+        self.generation += 1
+
+
+class _SearchesAhead:
+    """Full searches started on worker threads before their turn, for maps whose accepted result
+    will be held out of the global map: while nothing is fused, the global map they run against is
+    the one their turn would give them, so merge_all's results are those of one search at a time.
+    A result is taken only if the global map is still the one it ran on (else searched again)."""
+
+    def __init__(self, workers: int, ahead: Callable[[int], bool] | None):
+        self.ahead = ahead
+        self.slots = max(0, workers - 1) if ahead is not None else 0
+        self.pool = ThreadPoolExecutor(self.slots, thread_name_prefix="merge-search") if self.slots else None
+        self.running: dict[int, tuple[int, Future]] = {}
+        """Map -> (world generation it runs on, its search)."""
+        self.started: list[Future] = []
+        self.cpu_s = 0.0
+        """CPU time of every search started here, summed once they are done (close)."""
+
+    def start(self, todo: list[int], world: "_World", prepared: Callable, params: MergeParams,
+              skip: frozenset[int]) -> None:
+        """Start the searches of the maps after todo[0] that may run ahead, up to the free slots.
+        Both maps are completed here first: the worker threads only read them."""
+        if self.pool is None:
+            return
+        for j in [j for j in self.running if j not in todo]:  # merged meanwhile (a hint): not needed
+            del self.running[j]
+        for j in todo[1:]:
+            if len(self.running) >= self.slots:
+                return
+            if j in self.running or j in skip or not self.ahead(j):
+                continue
+            tm: dict = {}
+            a, b = world.prepared(tm), prepared(j, tm)
+            complete(a, params, tm)
+            complete(b, params, tm)
+            self.running[j] = (world.generation, self.pool.submit(_timed_search, a, b, params, tm))
+            self.started.append(self.running[j][1])
+
+    def take(self, i: int, generation: int) -> tuple[MergeResult, dict] | None:
+        """Map i's search run ahead on the global map of `generation`, or None."""
+        entry = self.running.pop(i, None)
+        if entry is None:
+            return None
+        r, tm, _ = entry[1].result()
+        return (r, tm) if entry[0] == generation else None
+
+    def close(self) -> None:
+        """Wait for every search still running (their results are not needed) and stop the threads."""
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.running.clear()
+            self.cpu_s = sum(f.result()[2] for f in self.started if not f.cancelled())
+
+
+def _timed_search(a, b, params: MergeParams, tm: dict) -> tuple[MergeResult, dict, float]:
+    """merge_prepared on a worker thread: (result, timings with its total, CPU seconds it took)."""
+    t0, cpu0 = time.perf_counter(), time.thread_time()
+    r = merge_prepared(a, b, params, tm)
+    tm["total"] = time.perf_counter() - t0
+    return r, tm, time.thread_time() - cpu0
 
 
 def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
               params: MergeParams | None = None, hints: list[list[Hint]] | None = None,
               hints_only: frozenset[int] = frozenset(),
               contest: frozenset[int] = frozenset(),
-              hold: Callable[[int, MergeResult], bool] | None = None) -> GlobalMergeResult:
+              hold: Callable[[int, MergeResult], bool] | None = None,
+              ahead: Callable[[int], bool] | None = None, workers: int = 1) -> GlobalMergeResult:
     """Merge others into a copy of reference, retrying failures while the global map keeps growing.
 
     hints[i]: candidate transforms for others[i] (hints.py). Hints go first and are retried whenever
@@ -77,6 +145,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
     of a symmetric building is checked against the alternatives once the maps grew).
     hold(i, result): an accepted map it returns True for is reported (and its transform resolves
     other maps' hints) but not fused into the global map: a provisional merge, not yet trusted.
+    ahead(i): True when map i's accepted result is sure to be held; with workers > 1, the full
+    searches of such maps run `workers` at a time (_SearchesAhead), with the results of one at a time.
     A map of another resolution than the reference's is compared as pair.comparable makes it and
     resampled to the reference's resolution when fused (transforms are in metres)."""
     params = params or coopd_params()
@@ -101,7 +171,7 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
             if hold is None or not hold(i, r):
                 world.fuse(others[i], r.transform, tm)
             merged[i] = r.transform
-        tm["total"] = time.perf_counter() - t0
+        tm.setdefault("total", time.perf_counter() - t0)  # a search run ahead timed itself
         results[i] = replace(r, timings=tm)
 
     dead: set[tuple[int, int]] = set()
@@ -151,30 +221,39 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
 
     rounds = 0
     pending = list(range(len(others)))
-    while pending and rounds < params.max_rounds:
-        rounds += 1
-        before = len(merged)
-        searched: set[int] = set()
-        while True:
-            run_hints(pending)
-            todo = [i for i in _order(pending, hints)
-                    if i not in merged and i not in searched and (i not in hints_only or i in contest)]
-            if not todo:
+    searches = _SearchesAhead(workers, ahead)
+    try:
+        while pending and rounds < params.max_rounds:
+            rounds += 1
+            before = len(merged)
+            searched: set[int] = set()
+            while True:
+                run_hints(pending)
+                todo = [i for i in _order(pending, hints)
+                        if i not in merged and i not in searched and (i not in hints_only or i in contest)]
+                if not todo:
+                    break
+                i = todo[0]
+                searched.add(i)
+                searches.start(todo, world, prepared, params, contest)
+                t0 = time.perf_counter()
+                done = searches.take(i, world.generation)
+                if done is not None:
+                    r, tm = done
+                else:
+                    tm = {}
+                    known = [t for t in (resolve(h, merged) for h in hints[i]) if t is not None] \
+                        if i in contest else []
+                    r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm, known)
+                full += 1
+                finish(i, r, tm, t0)
+            pending = [i for i in pending if i not in merged]
+            if len(merged) == before:
                 break
-            i = todo[0]
-            searched.add(i)
-            tm = {}
-            t0 = time.perf_counter()
-            known = [t for t in (resolve(h, merged) for h in hints[i]) if t is not None] \
-                if i in contest else []
-            r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm, known)
-            full += 1
-            finish(i, r, tm, t0)
-        pending = [i for i in pending if i not in merged]
-        if len(merged) == before:
-            break
+    finally:
+        searches.close()
     for i in range(len(others)):
         if results[i] is None:  # in hints_only, and no hint validated
             results[i] = MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0,
                                      "deferred: full search left to a peer's merge result", method="deferred")
-    return GlobalMergeResult(world.grid, results, rounds, refused, full, checked[0])
+    return GlobalMergeResult(world.grid, results, rounds, refused, full, checked[0], searches.cpu_s)

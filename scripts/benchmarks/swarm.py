@@ -10,10 +10,11 @@ shares or merges while the others still start. Until every daemon:
   t_share   holds every other's map (status peers[].map_version),
   t_global  has N-1 accepted merge offsets (status merges.offsets), each checked against the
             flight's truth (translation error < --tol-m, yaw/rotation < --tol-deg; else "wrong").
-Also per daemon: merges done/failed/deferred, merging-thread and process CPU, peak RSS, and per
-merged map its mean displacement (its occupied cells placed by the offset vs by the truth; the
-table's "shift m" is the median/max over all merges). When the
-daemon's config has `[merging] distributed`, every size runs both ways (the peer comparison).
+Also per daemon: merges done/failed/deferred, merge CPU (as the daemon reports it: its merging
+thread and the search threads it starts; the merging thread alone from /proc), process CPU, peak
+RSS, and per merged map its mean displacement (its occupied cells placed by the offset vs by the
+truth; the table's "shift m" is the median/max over all merges). When the daemon's config has
+`[merging] distributed`, every size runs both ways (the peer comparison).
 Prints a table and writes out/bench/swarm.json.
 With --transport mtp,zenoh every size also runs with the maps shared over Zenoh (peers on loopback,
 multicast scouting off, each connecting to drone 1 and finding the others by gossip).
@@ -427,14 +428,15 @@ def _delta(a, b):
 def table(rows: list[dict]) -> str:
     """The printed table: one line per size and mode."""
     head = ("N", "transport", "mode", "t_share", "t_global", "t_total", "merges", "accepted", "wrong",
-            "merge thr CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone", "shift m")
+            "merge CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone", "shift m")
     lines = ["  ".join(f"{h:>9}" for h in head)]
     for r in rows:
         t_global = f"gave up {r['gave_up_at_s']:.0f}" if r.get("gave_up_at_s") else _s(r.get("t_global_s"))
         cells = (r["drones"], r.get("transport", "mtp"), r["mode"], _s(r.get("t_share_s")), t_global,
                  _s(r.get("t_total_s")), r.get("merges_done"),
                  f"{r.get('accepted_offsets')}/{r.get('wanted_offsets')}", r.get("wrong_merges"),
-                 _s(r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")), r.get("peak_rss_mib_max"),
+                 _s(r.get("merge_cpu_s") or r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")),
+                 r.get("peak_rss_mib_max"),
                  _s((r.get("after_global") or {}).get("merging_thread_cpu_s")),
                  None if r.get("bytes_sent_per_drone") is None else round(r["bytes_sent_per_drone"] / 1000),
                  "-" if not r.get("displacement_m") else

@@ -90,6 +90,16 @@ def test_a_new_fit_is_held_until_found_again_on_grown_maps_and_then_confirmed():
     assert book.provisional() == [] and not book.holding and book.held_inputs is None
 
 
+def test_a_search_may_run_ahead_only_where_any_fit_it_finds_would_be_held():
+    book = FitBook()
+    assert book.holds_any_fit(2, 1000)  # never fitted: its first fit is held
+    book.record(1, [_map(2), _map(3)], [_result(), _result(accepted=False)], [1000, 900], {2}, None, 1)
+    assert not book.holds_any_fit(2, 1400)  # fitted: the same fit found again on grown maps is fused
+    assert book.holds_any_fit(3, 1000)  # refused before, its pair still growing
+    assert not book.holds_any_fit(3, 905)  # refused on maps that stopped growing: a fit would settle
+    assert book.holds(3, _result(), 1000, 1.3) and not book.holds(3, _result(), 905, 1.3)
+
+
 def test_confirming_every_held_fit_clears_them_and_their_inputs():
     book = FitBook()
     book.record(1, [_map(2), _map(3)], [_result(), _result()], [1000, 900], {2, 3}, (1, (), ()), 1)
@@ -164,6 +174,7 @@ def test_the_daemons_settings_come_from_the_configuration():
     assert s.limits.max_cells == config.sharing.max_map_cells
     assert s.recheck_growth == config.merging.recheck_growth
     assert s.confirm_before_fusing == config.merging.confirm_before_fusing and s.params is None
+    assert s.vouched == config.merging.vouched and s.search_threads == config.merging.search_threads == 2
 
 
 def test_the_publisher_sends_only_changed_edges_with_increasing_versions_and_survives_a_refusal():

@@ -43,3 +43,21 @@ def test_region_inheritance_merges_a_map_that_only_overlaps_a_later_one(world):
         assert rotation_angle_deg(r.transform[:3, :3].T @ truth[:3, :3]) < 2.0
         assert np.linalg.norm(r.transform[:3, 3] - truth[:3, 3]) < 0.3
     assert res.global_map.counts().known > 2 * maps[0].grid.counts().known
+
+
+@pytest.mark.slow
+@pytest.mark.cpu_bound
+def test_searches_run_ahead_give_the_results_of_one_search_at_a_time(world):
+    """With every fit held, two searches at a time give exactly the one-at-a-time results; with fits
+    fused, a search that ran ahead on a global map since grown is run again, and the results still
+    match."""
+    maps = make_chain(world, 4, [(6, 12.5), (10, 12.5), (14, 12.5), (18, 12.5)])
+    others = [m.grid for m in maps[1:]]
+    for hold in (lambda i, r: True, None):
+        alone = merge_all(maps[0].grid, others, hold=hold)
+        ahead = merge_all(maps[0].grid, others, hold=hold, ahead=lambda i: True, workers=2)
+        assert ahead.full_registrations == alone.full_registrations
+        for a, b in zip(alone.results, ahead.results, strict=True):
+            assert (a.accepted, a.reason, a.score, a.inliers) == (b.accepted, b.reason, b.score, b.inliers)
+            assert np.array_equal(a.transform, b.transform)
+        assert np.array_equal(alone.global_map.cells, ahead.global_map.cells)
