@@ -204,6 +204,8 @@ class ZenohLink:
         self._new = threading.Condition()
         self._inbox: queue.Queue = queue.Queue(QUEUE_MESSAGES)
         self._fetch: queue.Queue = queue.Queue(256)
+        self._wanted: set[str] = set()  # vehicles waiting in _fetch (each once)
+        self._wanted_lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.counters: Counter = Counter()
@@ -336,10 +338,17 @@ class ZenohLink:
             self._want(parts[2])
 
     def _want(self, vid: str) -> None:
-        """Have the fetch thread query this vehicle's latest map and merge result."""
+        """Have the fetch thread query this vehicle's latest map and merge result (once, however
+        often it is asked before the query runs)."""
+        with self._wanted_lock:
+            if vid in self._wanted:
+                return
+            self._wanted.add(vid)
         try:
             self._fetch.put_nowait(vid)
         except queue.Full:
+            with self._wanted_lock:
+                self._wanted.discard(vid)
             self.counters["fetch_dropped"] += 1
 
     def _fetch_loop(self) -> None:
@@ -347,19 +356,25 @@ class ZenohLink:
             vid = self._fetch.get()
             if vid is None or self.session is None:
                 return
+            with self._wanted_lock:
+                self._wanted.discard(vid)
             if not vid.isdigit():
                 continue
             try:
                 selector = f"coopd/{self.settings.swarm}/{vid}/*"
                 for reply in self.session.get(selector, timeout=QUERY_TIMEOUT_S):
-                    if reply.ok is not None:
-                        self._enqueue(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                    if reply.ok is not None:  # our own thread: wait for room rather than drop
+                        self._enqueue(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), QUERY_TIMEOUT_S)
                         self.counters["fetched"] += 1
             except Exception as e:  # a session closing under us, a peer leaving mid-query
                 self.counters["fetch_failed"] += 1
                 log.debug("zenoh: fetching vehicle %s failed: %s", vid, e)
 
-    def _enqueue(self, key: str, payload: bytes) -> None:
+    def _enqueue(self, key: str, payload: bytes, wait_s: float = 0.0) -> None:
+        """Queue a message for the receive thread, waiting up to wait_s for room (Zenoh's own threads
+        never wait). A publication that finds the queue full is dropped (`busy`) and its vehicle
+        fetched again by query once there is room: many drones publishing at once (a swarm coming
+        up) must not lose a map for good."""
         parsed = parse_key(self.settings.swarm, key)
         if parsed is None or parsed[0] == self.vehicle_id:
             self.counters["ignored"] += parsed is None  # our own publications come back: not counted
@@ -372,11 +387,14 @@ class ZenohLink:
             self._drop("memory", parsed[0], key, f"{len(payload)} bytes do not fit the memory budget")
             return
         try:
-            self._inbox.put_nowait((key, parsed, payload, time.monotonic()))
+            item = (key, parsed, payload, time.monotonic())
+            self._inbox.put(item, block=wait_s > 0, timeout=wait_s or None)
         except queue.Full:
             if self._ledger is not None:
                 self._ledger.add(INBOX_LEDGER, -len(payload))
             self._drop("busy", parsed[0], key, f"{QUEUE_MESSAGES} messages already waiting")
+            if wait_s == 0:
+                self._want(str(parsed[0]))
 
     def _receive_loop(self) -> None:
         while not self._stop.is_set():

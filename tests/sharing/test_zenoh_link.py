@@ -139,6 +139,46 @@ def test_what_the_receive_path_refuses_is_counted_and_changes_nothing():
         receiver.stop()
 
 
+def test_maps_dropped_while_the_receiver_is_busy_are_fetched_again():
+    """20 vehicles publish at once into a receiver that takes 50 ms a map: past the 8 waiting, maps
+    are dropped as busy, and each dropped vehicle's latest map is then fetched by query, so every
+    map arrives (before: the 12 dropped were lost until their next version)."""
+    import threading
+    import time
+
+    ports = [zenoh_port() for _ in range(2)]
+    receiver = node(2, ports[0])
+    link = receiver.zenoh
+    accept = link._accept
+    link._accept = lambda arrival: (time.sleep(0.05), accept(arrival))[1]  # a slow receive path
+    raw = zenoh.open(_raw_config(ports[1], ports[0]))
+    cipher = envelope_cipher(KEY)
+    vids = list(range(20, 40))
+    envelopes = {v: seal(cipher, key_expr("t", v, "map"), tm.make(v, 3, bytes([v]) * 64)) for v in vids}
+    served = threading.Event()
+
+    def answer(query):  # each vehicle's queryable, as its own session would serve it
+        vid = int(str(query.selector.key_expr).split("/")[2])
+        if vid in envelopes:
+            served.set()
+            query.reply(key_expr("t", vid, "map"), envelopes[vid])
+
+    queryables = [raw.declare_queryable(f"coopd/t/{v}/*", answer) for v in vids]
+    try:
+        assert wait_until(lambda: receiver.stats()["zenoh"]["peers"], 10)
+        for v in vids:
+            raw.put(key_expr("t", v, "map"), envelopes[v])
+        assert wait_until(lambda: all(receiver.received.version(v) == 3 for v in vids), 30), \
+            receiver.stats()["zenoh"]
+        z = receiver.stats()["zenoh"]
+        assert z.get("dropped_busy", 0) >= 1 and served.is_set() and z["fetched"] >= z["dropped_busy"], z
+    finally:
+        for q in queryables:
+            q.undeclare()
+        raw.close()
+        receiver.stop()
+
+
 def _raw_config(listen_port: int, connect_port: int):
     import json
 
