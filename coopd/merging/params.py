@@ -98,6 +98,11 @@ class MergeParams:
     of the range each: outdoors the 'ceiling' is the top of 0.9 m barriers)."""
     search_peaks_per_yaw: int = 2
     search_suppress_m: float = 1.5
+    search_distinct_deg: float = 6.0
+    search_distinct_m: float = 1.5
+    """Across yaws, a peak within search_distinct_deg and search_distinct_m (where b's centre lands)
+    of a stronger one is a near-copy of it and is not handed on (yaw_search.distinct_peaks); 0
+    degrees keeps every peak."""
     search_candidates: int = 6
     """Best search peaks refined and validated."""
     # --- MTM and refinement (§8.8)
