@@ -237,10 +237,13 @@ def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: i
     previous = np.empty((len(source), 3), dtype=np.int64)
     frac = 0.0
     has_previous = False
-    any_side = np.full(len(source), ANY_SIDE, dtype=np.uint8)
+    want = np.full(len(source), ANY_SIDE, dtype=np.uint8)
+    if normals is not None:
+        normals = np.ascontiguousarray(normals, dtype=np.float64)
     for k, r in enumerate(radii):
         moved = np.ascontiguousarray(apply(t, source))
-        want = any_side if normals is None else side_bits(normals, t[:3, :3])
+        if normals is not None:
+            _side_bits_into(normals, np.ascontiguousarray(t[:3, :3]), want)
         n, same, fitted = _icp_step(target.occupied, *target.index, offset,
                                     float(target.resolution), points, moved, r / target.resolution, idx, dist,
                                     previous, has_previous, ICP_MIN_PAIRS, target.side_bits, want)
@@ -455,14 +458,29 @@ def facing_bits(cells, threshold):
     return out
 
 
+@nb.njit(**_JIT)
+def _side_bits_into(normals, rotation, out):
+    """out[i] = facing_bits of normal i turned by rotation (ANY_SIDE for a zero normal)."""
+    for i in range(normals.shape[0]):
+        bits = 0
+        for a in range(3):
+            n = normals[i]
+            c = rotation[a, 0] * n[0] + rotation[a, 1] * n[1] + rotation[a, 2] * n[2]
+            if c >= FACING_MIN:
+                bits |= 1 << (2 * a)
+            elif c <= -FACING_MIN:
+                bits |= 1 << (2 * a + 1)
+        zero = normals[i, 0] == 0.0 and normals[i, 1] == 0.0 and normals[i, 2] == 0.0
+        out[i] = ANY_SIDE if zero or bits == 0 else bits
+
+
 def side_bits(normals: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """facing_bits of points from their free-side normals (b frame) turned by rotation into a's frame;
     ANY_SIDE for a point with none."""
-    n = normals @ np.asarray(rotation).T
-    signed = np.concatenate([n, -n], axis=1)[:, [0, 3, 1, 4, 2, 5]]
-    bits = ((signed >= FACING_MIN) << np.arange(SIDES)).sum(axis=1).astype(np.uint8)
-    bits[bits == 0] = ANY_SIDE
-    return bits
+    out = np.empty(len(normals), dtype=np.uint8)
+    _side_bits_into(np.ascontiguousarray(normals, dtype=np.float64),
+                    np.ascontiguousarray(rotation, dtype=np.float64), out)
+    return out
 
 
 def side_of(normals: np.ndarray, rotation: np.ndarray) -> np.ndarray:
