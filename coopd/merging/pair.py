@@ -15,7 +15,7 @@ from .mtm import euler_eq33
 from .params import MergeParams, coopd_params
 from .preprocess import despeckle
 from .ransac import filter_correspondences
-from .refine import OccupiedCells, facing_bits, field_fit, free_sides, icp
+from .refine import OccupiedCells, field_fit, free_sides, icp
 from .validation import Agreement, MapSummary, agreement, summarise
 
 AMBIGUOUS = "ambiguous"
@@ -78,6 +78,9 @@ class PreparedMap:
     level: np.ndarray | None = None
     """Rotation levelling the map (level.py) and the levelled grid the yaw search runs on."""
     levelled: OccupancyGrid | None = None
+    refine_points: tuple | None = None
+    """((refine_max_points, threshold), points, free-side normals): what refinement moves when the map
+    is b (_refine_points)."""
 
 
 def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = None,
@@ -90,8 +93,9 @@ def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = Non
     tm["despeckle"] = tm.get("despeckle", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
     summary = summarise(grid, params.occupied_threshold, params.validation_max_points)
-    sides = facing_bits(grid.cells, params.occupied_threshold) if params.refine_facing else None
-    occupied = OccupiedCells(grid.cells >= params.occupied_threshold, grid.offset, grid.resolution, sides)
+    occupied = OccupiedCells(grid.cells >= params.occupied_threshold, grid.offset, grid.resolution,
+                             cells=grid.cells if params.refine_facing else None,
+                             threshold=params.occupied_threshold)
     tm["summarise"] = tm.get("summarise", 0.0) + time.perf_counter() - t0
     p = PreparedMap(grid, summary, occupied, None, None, grid)
     if not lazy:
@@ -127,20 +131,25 @@ def _feature_candidates(a: PreparedMap, b: PreparedMap, params: MergeParams, tm:
     return [Candidate(h.transform, h.inlier_count, params.ransac_model) for h in hyps]
 
 
-def _refine_points(b: PreparedMap, params: MergeParams) -> np.ndarray:
-    """b's occupied cells thinned evenly to about refine_max_points: what refinement moves."""
-    return b.summary.occupied_m[:: max(1, len(b.summary.occupied_m) // params.refine_max_points)]
+def _refine_points(b: PreparedMap, params: MergeParams) -> tuple[np.ndarray, np.ndarray]:
+    """b's occupied cells thinned evenly to about refine_max_points, what refinement moves, and their
+    free-side normals (refine.free_sides); made once per map."""
+    key = (params.refine_max_points, params.occupied_threshold)
+    if b.refine_points is None or b.refine_points[0] != key:
+        src = np.ascontiguousarray(b.summary.occupied_m[:: max(1, len(b.summary.occupied_m)
+                                                              // params.refine_max_points)])
+        normals = free_sides(b.grid.cells, params.occupied_threshold, b.grid.offset, b.grid.resolution, src)
+        b.refine_points = (key, src, normals)
+    return b.refine_points[1], b.refine_points[2]
 
 
 def _refined(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) -> Candidate:
     """The hypothesis pulled onto a's occupied cells by ICP (unchanged when refinement is off)."""
     if not (params.refine and len(a.summary.occupied_m) and len(b.summary.occupied_m)):
         return c
-    src = np.ascontiguousarray(_refine_points(b, params))  # one compiled layout for every map
-    normals = None
-    if params.refine_facing:
-        normals = free_sides(b.grid.cells, params.occupied_threshold, b.grid.offset, b.grid.resolution, src)
-    t, frac = icp(a.occupied, src, c.transform, params.refine_iterations, normals)
+    src, normals = _refine_points(b, params)
+    t, frac = icp(a.occupied, src, c.transform, params.refine_iterations,
+                  normals if params.refine_facing else None)
     inliers = int(round(frac * len(src))) if c.source in ("search", "given") else c.inliers
     return Candidate(t, inliers, c.source)
 

@@ -148,13 +148,19 @@ class OccupiedCells:
     resolution: float
     sides: np.ndarray | None = None
     """Per cell, the bits (1 << side, SIDES) of the sides it was seen from (facing_bits), or None:
-    then every occupied cell pairs with any point."""
+    then they come from cells, or every occupied cell pairs with any point."""
+    cells: np.ndarray | None = None
+    threshold: int = 0
+    """The grid's cells and occupied threshold, when side bits are made from them on the first query
+    that needs them (a map that is only ever b never pays for them)."""
 
     @cached_property
     def side_bits(self) -> np.ndarray:
-        """sides, or ANY_SIDE for every occupied cell when there are none."""
+        """sides, or facing_bits of cells, or ANY_SIDE for every occupied cell."""
         if self.sides is not None:
             return self.sides
+        if self.cells is not None:
+            return facing_bits(self.cells, self.threshold)
         return np.where(self.occupied, ANY_SIDE, 0).astype(np.uint8)
 
     @cached_property

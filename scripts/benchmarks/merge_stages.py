@@ -101,7 +101,7 @@ def main() -> int:
 
     pa, pb = prepare(a, params, lazy=True), prepare(b, params, lazy=True)
     truth = invert(a_map.world_from_map) @ b_map.world_from_map
-    source = _refine_points(pb, params)
+    source, _ = _refine_points(pb, params)
     moved = apply(truth, source) + np.array([0.1, 0.0, 0.0])
     centres = pa.summary.occupied_m
     tree, build = cpu_best(lambda: cKDTree(centres), args.repeat)
