@@ -15,8 +15,11 @@ daemon's config has `[merging] distributed`, every size runs both ways (the peer
 Prints a table and writes out/bench/swarm.json.
 With --transport mtp,zenoh every size also runs with the maps shared over Zenoh (peers on loopback,
 multicast scouting off, each connecting to drone 1 and finding the others by gossip).
+--camera-rate flies the maps with every emulated camera at that rate (fewer frames: a flight of many
+drones fits a small machine; each map a little sparser), stated in the output and the JSON.
 Usage: scripts/bench swarm [--drones 2,4,6,8,10] [--transport mtp,zenoh] [--modes distributed]
-                           [--world small_house] [--seed 1] [--timeout 300]
+                           [--world small_house] [--seed 1] [--vehicles 10] [--camera-rate HZ]
+                           [--timeout 300]
 """
 
 import argparse
@@ -415,6 +418,14 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def flight_description(world: str, seed: int, drones: int, camera_rate_hz: float) -> str:
+    """What the maps are, said with the camera rate and whether it was reduced from the emulator's."""
+    default = simset.camera().rate_hz
+    rate = f"cameras at {camera_rate_hz:g} Hz" + ("" if camera_rate_hz == default else
+                                                 f" (reduced from the emulator's {default:g} Hz)")
+    return f"maps: simset flight of {drones} drones in {world}, seed {seed}, {rate}"
+
+
 def _s(v):
     return "-" if v is None else (f"{v:.1f}" if isinstance(v, float) else str(v))
 
@@ -453,6 +464,8 @@ def main():
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--vehicles", type=int, default=10,
                     help="drones of the flight (at least the largest size); size N runs the first N maps")
+    ap.add_argument("--camera-rate", type=float, default=None, metavar="HZ",
+                    help="frame rate of every camera of the flight (default: the emulator's)")
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per size after all daemons run")
     ap.add_argument("--start-timeout", type=float, default=300.0,
                     help="seconds for all daemons of a size to run")
@@ -475,8 +488,15 @@ def main():
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # unwinds through run_size's finally
     t = time.monotonic()
     k = max(args.vehicles, max(sizes))
-    flight = simset.flight_maps(args.world, args.seed, k, cache_dir=ROOT / simset.CACHE_DIR)
+    try:
+        camera_rate_hz = simset.camera(args.camera_rate).rate_hz
+    except ValueError as e:
+        ap.error(f"--camera-rate: {e}")
+    flight = simset.flight_maps(args.world, args.seed, k, cache_dir=ROOT / simset.CACHE_DIR,
+                                camera_rate_hz=args.camera_rate)
     maps_s = time.monotonic() - t
+    maps_said = flight_description(args.world, args.seed, k, camera_rate_hz)
+    print(maps_said, file=sys.stderr)
     rows = []
     transports = [t for t in args.transport.split(",") if t]
     if not set(transports) <= {"mtp", "zenoh"}:
@@ -495,7 +515,8 @@ def main():
                 print(json.dumps({k: v for k, v in row.items() if k != "daemons"}), file=sys.stderr)
     result = {
         "bench": "swarm",
-        "conditions": {"world": args.world, "seed": args.seed, "maps": f"simset flight of {k} drones",
+        "conditions": {"world": args.world, "seed": args.seed, "maps": maps_said,
+                       "camera_rate_hz": camera_rate_hz, "camera_rate_default_hz": simset.camera().rate_hz,
                        "map_cells": [m.grid.size for m in flight], "maps_s": round(maps_s, 1),
                        "cpus": os.cpu_count(), "load_avg_1min": os.getloadavg()[0], "timeout_s": args.timeout,
                        "tol": [args.tol_m, args.tol_deg], "merging": extra},
@@ -510,6 +531,7 @@ def main():
     tmp.write_text(json.dumps(result, indent=1))
     tmp.replace(out)
     print(table(rows))
+    print(maps_said)
 
 
 if __name__ == "__main__":
