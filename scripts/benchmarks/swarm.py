@@ -336,6 +336,18 @@ def linger(swarm: Swarm, at_global: dict, cpu1: dict, seconds: float) -> dict:
     }
 
 
+def sharing_failures(sharing: dict) -> dict[str, int]:
+    """A daemon's refused or dropped transfers by cause, over every peer and unidentified senders (e.g.
+    'busy': a Zenoh publication dropped because the receive queue was full)."""
+    out: dict[str, int] = {}
+    per_source = [p.get("failures", {}) for p in sharing.get("peers", [])]
+    per_source += list(sharing.get("unidentified_failures", {}).values())
+    for failures in per_source:
+        for cause, n in failures.items():
+            out[cause] = out.get(cause, 0) + n
+    return out
+
+
 def bytes_sent(sharing: dict) -> int:
     """Bytes a daemon handed over for sharing: MTP transfers to every peer (one per peer), and Zenoh
     publications and query replies (one per publication: Zenoh then sends it on every link to a
@@ -356,9 +368,12 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
         merges = st["merges"]
         cpu = cpu1[vid]
         j = judge_offsets(merges.get("offsets", {}), truths[vid], args.tol_m, args.tol_deg)
+        held = sorted(p["vehicle_id"] for p in st["peers"] if p.get("map_version") is not None)
         daemons.append({
             "vehicle": vid,
-            "held_maps": sorted(p["vehicle_id"] for p in st["peers"] if p.get("map_version") is not None),
+            "held_maps": held,
+            "missing_maps": sorted(set(swarm.ids) - set(held) - {vid}),
+            "sharing_failures": sharing_failures(st.get("sharing") or {}),
             "merges": {k: merges.get(k) for k in MERGE_COUNTERS},
             "full_registrations": merges.get("full_registrations"),
             "hinted": merges.get("hinted"),
@@ -378,6 +393,9 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
         "t_global_s": None if t_global is None else round(t_global, 2),
         "t_total_s": None if t_global is None or t_share is None else round(max(t_share, t_global), 2),
         "converged": t_global is not None,
+        "maps_held": sum(len(d["held_maps"]) for d in ok),
+        "sharing_failures": {c: sum(d["sharing_failures"].get(c, 0) for d in ok)
+                             for c in sorted({c for d in ok for c in d["sharing_failures"]})},
         "merges_done": sum(d["merges"]["done"] for d in ok),
         "merges_failed": sum(d["merges"]["failed"] for d in ok),
         "merges_deferred": sum(d["merges"]["deferred"] for d in ok),
@@ -401,13 +419,14 @@ def _delta(a, b):
 # ----------------------------------------------------------------------------------- report
 def table(rows: list[dict]) -> str:
     """The printed table: one line per size and mode."""
-    head = ("N", "transport", "mode", "t_share", "t_global", "t_total", "merges", "accepted", "wrong",
-            "merge thr CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone")
+    head = ("N", "transport", "mode", "t_share", "t_global", "t_total", "maps held", "merges", "accepted",
+            "wrong", "merge thr CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone")
     lines = ["  ".join(f"{h:>9}" for h in head)]
     for r in rows:
         t_global = f"gave up {r['gave_up_at_s']:.0f}" if r.get("gave_up_at_s") else _s(r.get("t_global_s"))
         cells = (r["drones"], r.get("transport", "mtp"), r["mode"], _s(r.get("t_share_s")), t_global,
-                 _s(r.get("t_total_s")), r.get("merges_done"),
+                 _s(r.get("t_total_s")), f"{r.get('maps_held')}/{r.get('wanted_offsets')}",
+                 r.get("merges_done"),
                  f"{r.get('accepted_offsets')}/{r.get('wanted_offsets')}", r.get("wrong_merges"),
                  _s(r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")), r.get("peak_rss_mib_max"),
                  _s((r.get("after_global") or {}).get("merging_thread_cpu_s")),
