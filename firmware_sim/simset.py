@@ -7,7 +7,7 @@ reporting frame translated so the first reported pose is the origin, as the daem
 so whatever drift bent into the map is what merging has to live with. Maps are cached as .npz.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -86,19 +86,32 @@ def start_lap_missions(sim, laps: int) -> None:
             v.fc.start_mission(sim.time, 0)
 
 
+def camera(rate_hz: float | None = None):
+    """The emulator's depth camera, at rate_hz frames per second (None: its default rate)."""
+    from firmware_sim.camera import CameraConfig
+
+    cfg = CameraConfig() if rate_hz is None else replace(CameraConfig(), rate_hz=float(rate_hz))
+    cfg.validate()
+    return cfg
+
+
 def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s: float = 0.0,
         pose_delay_s: float = 0.0, max_flight_s: float = 900.0, noisy_poses: bool = True,
-        config: MapperConfig | None = None, each_second=None) -> list[FlightMap]:
+        config: MapperConfig | None = None, each_second=None,
+        camera_rate_hz: float | None = None) -> list[FlightMap]:
     """Fly every drone's built-in route `laps` times in-process and return each drone's local map.
 
     ground_s: seconds the drones sit on the ground, mapping and drifting, before they take off (as
     when the daemons start well before the mission). pose_delay_s: each frame is mapped at the pose
     of that much earlier (camera and odometry clocks out of step). each_second(sim_time, mappers), if
-    given, is called after every simulated second of flight (e.g. to record the maps as they grow)."""
+    given, is called after every simulated second of flight (e.g. to record the maps as they grow).
+    camera_rate_hz: every camera's frame rate (None: the emulator's default); fewer frames make a
+    flight of many drones cheaper to fly, and each map a little sparser."""
     from firmware_sim.simulation import Simulation
     from firmware_sim.worlds import build_world
 
-    sim = Simulation(build_world(world_name, seed), n_vehicles, seed=seed, mavlink=False)
+    sim = Simulation(build_world(world_name, seed), n_vehicles, seed=seed, mavlink=False,
+                     camera=camera(camera_rate_hz))
     origins = [reported_pose(sim, i, noisy_poses)[0] for i in range(n_vehicles)]
     mappers = [Mapper(config or MapperConfig()) for _ in range(n_vehicles)]
     mount = CameraMount()
@@ -130,10 +143,12 @@ def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s
 
 
 def cache_path(world_name: str, seed: int, n_vehicles: int, laps: int, ground_s: float, pose_delay_s: float,
-               cache_dir: Path = CACHE_DIR) -> Path:
-    """Where flight_maps keeps one flight's maps."""
+               cache_dir: Path = CACHE_DIR, camera_rate_hz: float | None = None) -> Path:
+    """Where flight_maps keeps one flight's maps (a camera rate other than the default is in the name)."""
+    rate = camera(camera_rate_hz).rate_hz
     suffix = ("" if laps == 1 else f"_l{laps}") + ("" if ground_s == 0 else f"_g{ground_s:g}") + \
-        ("" if pose_delay_s == 0 else f"_d{pose_delay_s:g}")
+        ("" if pose_delay_s == 0 else f"_d{pose_delay_s:g}") + \
+        ("" if rate == camera().rate_hz else f"_c{rate:g}")
     return Path(cache_dir) / f"{world_name}_s{seed}_n{n_vehicles}{suffix}.npz"
 
 
@@ -165,12 +180,13 @@ def load(path: Path, world_name: str, seed: int) -> list[FlightMap]:
 
 
 def flight_maps(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s: float = 0.0,
-                pose_delay_s: float = 0.0, cache_dir: Path = CACHE_DIR) -> list[FlightMap]:
+                pose_delay_s: float = 0.0, cache_dir: Path = CACHE_DIR,
+                camera_rate_hz: float | None = None) -> list[FlightMap]:
     """Cached fly(): the maps of one world and seed, flown once and read back afterwards."""
-    path = cache_path(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, cache_dir)
+    path = cache_path(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, cache_dir, camera_rate_hz)
     if path.exists():
         return load(path, world_name, seed)
-    maps = fly(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s)
+    maps = fly(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, camera_rate_hz=camera_rate_hz)
     save(maps, path)
     return maps
 

@@ -18,8 +18,11 @@ truth; the table's "shift m" is the median/max over all merges). When the daemon
 Prints a table and writes out/bench/swarm.json.
 With --transport mtp,zenoh every size also runs with the maps shared over Zenoh (peers on loopback,
 multicast scouting off, each connecting to drone 1 and finding the others by gossip).
+--camera-rate flies the maps with every emulated camera at that rate (fewer frames: a flight of many
+drones fits a small machine; each map a little sparser), stated in the output and the JSON.
 Usage: scripts/bench swarm [--drones 2,4,6,8,10] [--transport mtp,zenoh] [--modes distributed]
-                           [--world small_house] [--seed 1] [--timeout 300]
+                           [--world small_house] [--seed 1] [--vehicles 10] [--camera-rate HZ]
+                           [--timeout 300]
 """
 
 import argparse
@@ -358,6 +361,18 @@ def linger(swarm: Swarm, at_global: dict, cpu1: dict, seconds: float) -> dict:
     }
 
 
+def sharing_failures(sharing: dict) -> dict[str, int]:
+    """A daemon's refused or dropped transfers by cause, over every peer and unidentified senders (e.g.
+    'busy': a Zenoh publication dropped because the receive queue was full)."""
+    out: dict[str, int] = {}
+    per_source = [p.get("failures", {}) for p in sharing.get("peers", [])]
+    per_source += list(sharing.get("unidentified_failures", {}).values())
+    for failures in per_source:
+        for cause, n in failures.items():
+            out[cause] = out.get(cause, 0) + n
+    return out
+
+
 def bytes_sent(sharing: dict) -> int:
     """Bytes a daemon handed over for sharing: MTP transfers to every peer (one per peer), and Zenoh
     publications and query replies (one per publication: Zenoh then sends it on every link to a
@@ -379,9 +394,12 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
         merges = st["merges"]
         cpu = cpu1[vid]
         j = judge_offsets(merges.get("offsets", {}), truths[vid], args.tol_m, args.tol_deg, points)
+        held = sorted(p["vehicle_id"] for p in st["peers"] if p.get("map_version") is not None)
         daemons.append({
             "vehicle": vid,
-            "held_maps": sorted(p["vehicle_id"] for p in st["peers"] if p.get("map_version") is not None),
+            "held_maps": held,
+            "missing_maps": sorted(set(swarm.ids) - set(held) - {vid}),
+            "sharing_failures": sharing_failures(st.get("sharing") or {}),
             "merges": {k: merges.get(k) for k in MERGE_COUNTERS},
             "full_registrations": merges.get("full_registrations"),
             "hinted": merges.get("hinted"),
@@ -402,6 +420,9 @@ def summarise(swarm: Swarm, last: dict, cpu0: dict, cpu1: dict, truths: dict, ar
         "t_global_s": None if t_global is None else round(t_global, 2),
         "t_total_s": None if t_global is None or t_share is None else round(max(t_share, t_global), 2),
         "converged": t_global is not None,
+        "maps_held": sum(len(d["held_maps"]) for d in ok),
+        "sharing_failures": {c: sum(d["sharing_failures"].get(c, 0) for d in ok)
+                             for c in sorted({c for d in ok for c in d["sharing_failures"]})},
         "merges_done": sum(d["merges"]["done"] for d in ok),
         "merges_failed": sum(d["merges"]["failed"] for d in ok),
         "merges_deferred": sum(d["merges"]["deferred"] for d in ok),
@@ -427,13 +448,14 @@ def _delta(a, b):
 # ----------------------------------------------------------------------------------- report
 def table(rows: list[dict]) -> str:
     """The printed table: one line per size and mode."""
-    head = ("N", "transport", "mode", "t_share", "t_global", "t_total", "merges", "accepted", "wrong",
-            "merge CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone", "shift m")
+    head = ("N", "transport", "mode", "t_share", "t_global", "t_total", "maps held", "merges", "accepted",
+            "wrong", "merge CPU", "proc CPU", "RSS max MiB", "CPU after", "kB sent/drone", "shift m")
     lines = ["  ".join(f"{h:>9}" for h in head)]
     for r in rows:
         t_global = f"gave up {r['gave_up_at_s']:.0f}" if r.get("gave_up_at_s") else _s(r.get("t_global_s"))
         cells = (r["drones"], r.get("transport", "mtp"), r["mode"], _s(r.get("t_share_s")), t_global,
-                 _s(r.get("t_total_s")), r.get("merges_done"),
+                 _s(r.get("t_total_s")), f"{r.get('maps_held')}/{r.get('wanted_offsets')}",
+                 r.get("merges_done"),
                  f"{r.get('accepted_offsets')}/{r.get('wanted_offsets')}", r.get("wrong_merges"),
                  _s(r.get("merge_cpu_s") or r.get("merging_thread_cpu_s")), _s(r.get("process_cpu_s")),
                  r.get("peak_rss_mib_max"),
@@ -445,6 +467,14 @@ def table(rows: list[dict]) -> str:
     lines.append(f"thesis (§10.4, 10 drones): share {THESIS['t_share_s']} s, merge {THESIS['t_merge_s']} s, "
                  f"total {THESIS['t_total_s']} s; goal here: 10 drones <= {GOAL_TOTAL_S:.0f} s total")
     return "\n".join(lines)
+
+
+def flight_description(world: str, seed: int, drones: int, camera_rate_hz: float) -> str:
+    """What the maps are, said with the camera rate and whether it was reduced from the emulator's."""
+    default = simset.camera().rate_hz
+    rate = f"cameras at {camera_rate_hz:g} Hz" + ("" if camera_rate_hz == default else
+                                                 f" (reduced from the emulator's {default:g} Hz)")
+    return f"maps: simset flight of {drones} drones in {world}, seed {seed}, {rate}"
 
 
 def _s(v):
@@ -485,6 +515,8 @@ def main():
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--vehicles", type=int, default=10,
                     help="drones of the flight (at least the largest size); size N runs the first N maps")
+    ap.add_argument("--camera-rate", type=float, default=None, metavar="HZ",
+                    help="frame rate of every camera of the flight (default: the emulator's)")
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per size after all daemons run")
     ap.add_argument("--start-timeout", type=float, default=300.0,
                     help="seconds for all daemons of a size to run")
@@ -507,8 +539,15 @@ def main():
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # unwinds through run_size's finally
     t = time.monotonic()
     k = max(args.vehicles, max(sizes))
-    flight = simset.flight_maps(args.world, args.seed, k, cache_dir=ROOT / simset.CACHE_DIR)
+    try:
+        camera_rate_hz = simset.camera(args.camera_rate).rate_hz
+    except ValueError as e:
+        ap.error(f"--camera-rate: {e}")
+    flight = simset.flight_maps(args.world, args.seed, k, cache_dir=ROOT / simset.CACHE_DIR,
+                                camera_rate_hz=args.camera_rate)
     maps_s = time.monotonic() - t
+    maps_said = flight_description(args.world, args.seed, k, camera_rate_hz)
+    print(maps_said, file=sys.stderr)
     rows = []
     transports = [t for t in args.transport.split(",") if t]
     if not set(transports) <= {"mtp", "zenoh"}:
@@ -527,7 +566,8 @@ def main():
                 print(json.dumps({k: v for k, v in row.items() if k != "daemons"}), file=sys.stderr)
     result = {
         "bench": "swarm",
-        "conditions": {"world": args.world, "seed": args.seed, "maps": f"simset flight of {k} drones",
+        "conditions": {"world": args.world, "seed": args.seed, "maps": maps_said,
+                       "camera_rate_hz": camera_rate_hz, "camera_rate_default_hz": simset.camera().rate_hz,
                        "map_cells": [m.grid.size for m in flight], "maps_s": round(maps_s, 1),
                        "cpus": os.cpu_count(), "load_avg_1min": os.getloadavg()[0], "timeout_s": args.timeout,
                        "tol": [args.tol_m, args.tol_deg], "merging": extra},
@@ -542,6 +582,7 @@ def main():
     tmp.write_text(json.dumps(result, indent=1))
     tmp.replace(out)
     print(table(rows))
+    print(maps_said)
 
 
 if __name__ == "__main__":

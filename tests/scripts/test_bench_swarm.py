@@ -122,3 +122,18 @@ def test_gave_up_needs_all_maps_idle_no_new_merge_and_an_unchanged_skip():
     assert not swarm.gave_up(st(1, 0), st(1, 1, state="merging"), ids)
     assert not swarm.gave_up(st(1, 0, held=[2]), st(1, 1, held=[2]), ids)  # a map still to come
     assert not swarm.gave_up({"merges": {}}, {"vehicle_id": 1, "peers": [], "merges": {}}, ids)  # old daemon
+
+
+def test_sharing_failures_add_up_every_peer_and_unidentified_sender():
+    sharing = {"peers": [{"vehicle_id": 2, "failures": {"busy": 2, "auth": 1}}, {"vehicle_id": 3},
+                         {"vehicle_id": 4, "failures": {"busy": 1}}],
+               "unidentified_failures": {"127.0.0.9": {"auth": 4}}}
+    assert swarm.sharing_failures(sharing) == {"busy": 3, "auth": 5}
+    assert swarm.sharing_failures({}) == {}
+
+
+def test_flight_description_says_a_reduced_camera_rate():
+    default = swarm.simset.camera().rate_hz
+    assert "reduced" not in swarm.flight_description("bookstore", 1, 30, default)
+    said = swarm.flight_description("bookstore", 1, 30, default / 2)
+    assert f"{default / 2:g} Hz (reduced from the emulator's {default:g} Hz)" in said and "30 drones" in said
