@@ -46,6 +46,15 @@ def skip_as_unchanged(urgent: bool, inputs: tuple | None, last_inputs: tuple | N
     return not urgent and same and not deferring and not holding
 
 
+def confirm_too_early(urgent: bool, holding: bool, inputs: tuple | None, held_inputs: tuple | None,
+                      now: float, gap_until: float) -> bool:
+    """Whether a merge due before the usual gap (min_gap_s after the last) waits for it: fits held
+    provisional are looked at again one settling period (settle_s) after the merge that held them,
+    to be confirmed if no input changed since; if some did (the maps still grow), the merge waits
+    for the gap as any other. Never when urgent."""
+    return not urgent and holding and inputs != held_inputs and now < gap_until
+
+
 def inputs_to_remember(inputs: tuple | None, left_out: bool) -> tuple | None:
     """The inputs a done merge is remembered by: with no map left out, peers' results no longer
     count (a new one cannot merge anything more), so they are dropped from the comparison."""

@@ -196,7 +196,7 @@ class Merger:
         """Merge every period_s, on request (settled, at most one merge per min_gap_s), at once for
         merge-now; skip a merge whose inputs are those of the last one done."""
         next_periodic = time.monotonic() + self.settings.period_s
-        not_before = 0.0
+        not_before = gap_until = 0.0
         while not self.trigger.stopped:
             due = self.trigger.wait_due(next_periodic, not_before, self.settings,
                                         lambda: self.progress.beat(PROGRESS_NAME), BEAT_PERIOD_S)
@@ -210,11 +210,17 @@ class Merger:
                 if rules.skip_as_unchanged(urgent, inputs, self._merged_inputs, self.book.deferring,
                                            self.book.holding):
                     self.counters["unchanged"] += 1
+                elif rules.confirm_too_early(urgent, self.book.holding, inputs, self.book.held_inputs,
+                                             time.monotonic(), gap_until):
+                    not_before = gap_until  # the maps still change: merge after the usual gap
+                    self.request("confirm")
                 else:
                     if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
                         self._merged_inputs = rules.inputs_to_remember(inputs, self.book.left_out)
-                    not_before = time.monotonic() + self.settings.min_gap_s
-                    if self.book.holding:  # merge again soon: the maps grew, or they settled
+                    gap_until = time.monotonic() + self.settings.min_gap_s
+                    not_before = gap_until
+                    if self.book.holding:  # look again once settled: confirm them, or merge the grown maps
+                        not_before = time.monotonic() + min(self.settings.settle_s, self.settings.min_gap_s)
                         self.request("confirm")
             self.trigger.complete(ticket)
 

@@ -41,6 +41,15 @@ def test_peers_results_are_forgotten_once_nothing_is_left_out():
     assert rules.inputs_to_remember(None, left_out=False) is None
 
 
+def test_a_look_at_held_fits_before_the_gap_merges_only_to_confirm_them():
+    held, grown = (3, ((2, 1),), ()), (4, ((2, 1),), ())
+    assert not rules.confirm_too_early(False, True, held, held, now=1.0, gap_until=5.0)  # confirm now
+    assert rules.confirm_too_early(False, True, grown, held, now=1.0, gap_until=5.0)  # wait for the gap
+    assert not rules.confirm_too_early(False, True, grown, held, now=5.0, gap_until=5.0)
+    assert not rules.confirm_too_early(True, True, grown, held, now=1.0, gap_until=5.0)  # merge-now
+    assert not rules.confirm_too_early(False, False, grown, held, now=1.0, gap_until=5.0)  # nothing held
+
+
 def test_held_fits_are_confirmed_without_a_search_only_on_the_inputs_that_held_them():
     inputs = (3, ((2, 1),), ())
     assert rules.confirms_without_search(True, True, inputs, inputs)

@@ -121,3 +121,34 @@ def test_the_merging_thread_merges_again_to_confirm_when_nothing_changes(flip):
     # searching again (merging is deterministic), fusing the map into the global map
     assert calls == [("full", True)] and m.status()["provisional"] == [] and m.counters["done"] == 2
     assert not m.offsets[2]["provisional"] and not _global_is_local(m, feed)
+
+
+def test_held_fits_are_confirmed_one_settling_period_later_unless_the_maps_changed(flip):
+    """The confirmation is looked for settle_s after the merge that held the fit, not min_gap_s: no
+    input changed, so it is confirmed then; with the maps changed meanwhile, the next merge waits for
+    min_gap_s as any other (here an hour: none within the test)."""
+    maps, truth, _ = flip
+    for changes in (False, True):
+        calls = []
+        feed = Feed(maps)
+        m = _merger(feed, _same_fit_fake(truth, calls), confirm_before_fusing=True, min_gap_s=3600,
+                    settle_s=0.3, sources={"local_version": lambda f=feed: f.version})
+        t = threading.Thread(target=m.run, daemon=True)
+        t.start()
+        try:
+            m.request("start")
+            deadline = time.monotonic() + 10
+            while m.counters["done"] < 1 and time.monotonic() < deadline:
+                time.sleep(0.005)
+            if changes:
+                feed.version += 1  # our map grew: the fit is not confirmed on these inputs
+            while not changes and m.status()["provisional"] and time.monotonic() < deadline:
+                time.sleep(0.02)
+            time.sleep(1.0)
+        finally:
+            m.stop()
+            t.join(5)
+        if changes:
+            assert m.counters["done"] == 1 and m.status()["provisional"] == [2]
+        else:
+            assert m.counters["done"] == 2 and m.status()["provisional"] == [] and calls == [("full", True)]
