@@ -1,5 +1,7 @@
 """Memory budget ledger: reservations by name, refusals, scratch, RSS from /proc/self/statm."""
 
+import gc
+import mmap
 import threading
 
 import numpy as np
@@ -39,9 +41,18 @@ def test_scratch_raises_and_releases():
 def test_snapshot_and_rss():
     b = MemoryBudget.from_mb(4096)
     assert b.baseline_bytes > 10 * MIB  # the interpreter with numpy loaded
-    before = read_rss()
-    block = np.ones(64 * MIB, np.uint8)  # touched pages count in RSS
-    grown = read_rss() - before
+    # A fresh anonymous mapping, so no allocator can hand back pages already resident, and no
+    # garbage collection in between: a cycle freed from an earlier test would lower RSS meanwhile.
+    gc.collect()
+    gc.disable()
+    try:
+        before = read_rss()
+        area = mmap.mmap(-1, 64 * MIB)
+        block = np.frombuffer(area, np.uint8)
+        block[:] = 1  # touched pages count in RSS
+        grown = read_rss() - before
+    finally:
+        gc.enable()
     assert 60 * MIB <= grown <= 70 * MIB
     b.reserve("local", block.nbytes)
     s = b.snapshot()
@@ -52,6 +63,7 @@ def test_snapshot_and_rss():
         vmrss = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS:"))
     assert abs(vmrss - read_rss()) < 8 * MIB
     del block
+    area.close()
 
 
 def test_concurrent_reservations_never_exceed_the_budget():
