@@ -26,24 +26,43 @@ def method_of(result) -> str:
 
 
 # ---------------------------------------------------------------------------------- triggering
+NEW_MAPS_WAIT = 3
+"""While maps of vehicles never merged keep arriving, or peers known alive have not sent theirs yet,
+pending requests settle for up to this many times max(settle_s, min_gap_s) after the first: a
+swarm's first exchange is searched in one merge."""
+
+
 def settled_at(pending_since: float | None, last_request_at: float, settle_s: float,
-               min_gap_s: float) -> float:
+               min_gap_s: float, last_new_at: float | None = None, awaiting: bool = False) -> float:
     """When pending merge requests have settled: settle_s after the last one, but at most
-    max(settle_s, min_gap_s) after the first (maps that never stop still merge); 0 when none pends."""
+    max(settle_s, min_gap_s) after the first (maps that never stop still merge); 0 when none pends.
+
+    When a pending request brought the map of a vehicle never seen before (`last_new_at`, the
+    latest such), they settle settle_s after the last new map, or while peers known alive have not
+    sent theirs (`awaiting`) until they do, in either case at most NEW_MAPS_WAIT times the usual cap
+    after the first: at 30 drones the first exchange takes longer than min_gap_s, and a merge that
+    starts before the last maps arrived searches and confirms them in groups, each group making
+    every peer merge again."""
     if pending_since is None:
         return 0.0
-    cap = pending_since + max(settle_s, min_gap_s)
-    return min(last_request_at + settle_s, cap)
+    gap = max(settle_s, min_gap_s)
+    due = min(last_request_at + settle_s, pending_since + gap)
+    if last_new_at is not None:
+        cap = pending_since + NEW_MAPS_WAIT * gap
+        due = max(due, cap if awaiting else min(last_new_at + settle_s, cap))
+    return due
 
 
 def skip_as_unchanged(urgent: bool, inputs: tuple | None, last_inputs: tuple | None, deferring: bool,
-                      holding: bool) -> bool:
+                      holding: bool, deferral_over: bool = True) -> bool:
     """Whether a merge is skipped (counted "unchanged"): merging is deterministic, so inputs equal to
     those of the last merge done would rebuild the same global map. Never when urgent (merge-now),
-    nor while a full search waits for a peer (it must run here once the wait is over) or fits are
-    provisional (the next merge confirms them)."""
+    nor once a full search that waited for a peer is due to run here (deferring, and its wait is
+    over), nor while fits are provisional (the next merge confirms them). While the wait lasts, a
+    merge on unchanged inputs would do nothing the last did not (a peer's new result changes them):
+    at 30 drones those idle merges of 29 waiting drones took the lowest id's CPU for its searches."""
     same = inputs is not None and inputs == last_inputs
-    return not urgent and same and not deferring and not holding
+    return not urgent and same and not (deferring and deferral_over) and not holding
 
 
 def confirm_too_early(urgent: bool, holding: bool, inputs: tuple | None, held_inputs: tuple | None,

@@ -47,7 +47,8 @@ class MergerSettings:
     """Received maps trigger a merge at most this often (a peer publishes every second)."""
     settle_s: float = 0.0
     """A requested merge waits until no request came for this long (the maps of a sharing burst
-    merge together, not the first one alone), but at most max(settle_s, min_gap_s)."""
+    merge together, not the first one alone), but at most max(settle_s, min_gap_s), or a few times
+    that while vehicles' first maps keep arriving (merge_rules.settled_at)."""
     distributed: bool = True
     """Use peers' merge results as hints and publish ours; off: own warm start only."""
     defer_full_s: float = 0.0
@@ -105,6 +106,9 @@ class MergeSources:
     """Peers' merge results (wire.MergeResultMessage), used as hints when distributed."""
     publish_results: Callable[[MergeResultMessage], None] | None = None
     """Hands our merge results to sharing, when distributed."""
+    awaited_maps: Callable[[], int] | None = None
+    """How many peers known alive have not sent their map yet (a first merge waits for them, within
+    merge_rules.NEW_MAPS_WAIT gaps); None: none is ever awaited."""
     published_version: Callable[[int], int] | None = None
     """The version peers hold of our local map at a given version counter (the version our edges
     name, so a peer can tell it merged the very maps we did); None: the counter itself."""
@@ -125,19 +129,23 @@ class MergeTrigger:
         self._reasons: list[str] = []
         self._pending_since: float | None = None
         self._last_request_at = 0.0
+        self._last_new_at: float | None = None
 
     @property
     def stopped(self) -> bool:
         return self._stop.is_set()
 
-    def request(self, reason: str, urgent: bool = False) -> int:
-        """Ask for a merge (non-blocking); returns the request's ticket. Urgent: skip min_gap_s."""
+    def request(self, reason: str, urgent: bool = False, new_map: bool = False) -> int:
+        """Ask for a merge (non-blocking); returns the request's ticket. Urgent: skip min_gap_s.
+        new_map: it brings the map of a vehicle never merged (rules.settled_at waits longer)."""
         with self._cv:
             self.requested += 1
             self._urgent |= urgent
             self._last_request_at = time.monotonic()
             if self._pending_since is None:
                 self._pending_since = self._last_request_at
+            if new_map:
+                self._last_new_at = self._last_request_at
             if len(self._reasons) < 16:
                 self._reasons.append(reason)
             self._cv.notify_all()
@@ -149,27 +157,31 @@ class MergeTrigger:
             self._cv.notify_all()
 
     def wait_due(self, next_periodic: float, not_before: float, settings: MergerSettings,
-                 beat: Callable[[], None], beat_period_s: float) -> tuple[int, bool, list[str]] | None:
+                 beat: Callable[[], None], beat_period_s: float,
+                 awaited: Callable[[], int] | None = None) -> tuple[int, bool, list[str]] | None:
         """Block until a merge is due: an urgent request, pending requests settled and not before
-        `not_before`, or the period (`next_periodic`). Calls beat() at least every beat_period_s.
+        `not_before`, or with none pending the period (`next_periodic`). Calls beat() at least every
+        beat_period_s; awaited() (maps still coming, rules.settled_at) is asked outside the trigger's
+        lock, since it reads the sharing layer, which requests merges under its own locks.
         Returns (ticket served, urgent, reasons) and clears them; None once stopped."""
-        with self._cv:
-            while not self._stop.is_set():
-                beat()
+        while not self._stop.is_set():
+            beat()
+            awaiting = awaited is not None and self._last_new_at is not None and awaited() > 0
+            with self._cv:
                 now = time.monotonic()
                 pending = self.requested > self._completed
                 settled = rules.settled_at(self._pending_since, self._last_request_at, settings.settle_s,
-                                           settings.min_gap_s)
+                                           settings.min_gap_s, self._last_new_at, awaiting)
+                # pending requests are served once settled (bounded by rules.settled_at), the period
+                # only when none pends: it must not cut short the wait for a swarm's first maps
                 due = max(not_before, settled) if pending else next_periodic
-                if self._urgent or now >= due or now >= next_periodic:
-                    break
-                self._cv.wait(min(beat_period_s, max(0.0, min(due, next_periodic) - now)))
-            if self._stop.is_set():
-                return None
-            self._pending_since = None
-            urgent, self._urgent = self._urgent, False
-            reasons, self._reasons = self._reasons or ["period"], []
-            return self.requested, urgent, reasons
+                if self._urgent or now >= due:
+                    self._pending_since = self._last_new_at = None
+                    urgent, self._urgent = self._urgent, False
+                    reasons, self._reasons = self._reasons or ["period"], []
+                    return self.requested, urgent, reasons
+                self._cv.wait(min(beat_period_s, max(0.0, due - now)))
+        return None
 
     def complete(self, ticket: int) -> None:
         """Every request up to `ticket` is served."""
@@ -218,6 +230,8 @@ class FitBook:
         self.deferring = False
         """The last merge left a map's full search to a peer: merge again on the period even if
         nothing changed, so that the search runs here once defer_full_s is over."""
+        self.defer_until = 0.0
+        """When the first search left to a peer stops waiting (monotonic; 0: none waits)."""
         self.held_inputs: tuple | None = None
         """Inputs of the merge that left maps provisional: the same again means they settled."""
 
@@ -261,6 +275,7 @@ class FitBook:
         """Positions of the input maps whose full search waits for a peer (merge_all hints_only);
         remembers when each map first waited, and whether any does (deferring)."""
         out = set()
+        until = []
         if rules.waits_for_peer(own_id, vids, settings.distributed, settings.defer_full_s):
             for k, vid in enumerate(vids):
                 p = self.pair(vid)
@@ -269,7 +284,9 @@ class FitBook:
                 if rules.defers_search(p.transform is not None, bool(hints[k]), now - p.first_seen,
                                        settings.defer_full_s):
                     out.add(k)
+                    until.append(p.first_seen + settings.defer_full_s)
         self.deferring = bool(out)
+        self.defer_until = min(until, default=0.0)
         return frozenset(out)
 
     def to_contest(self, vids: list[int], hints: list[list], sizes: list[int],

@@ -156,6 +156,8 @@ class Merger:
         self.offsets: dict[int, dict] = {}
         """Vehicle id -> its map's result at the last merge (offset_entry)."""
         self.busy_since: float | None = None
+        self._arrived: set[int] = set()
+        """Vehicles whose maps arrived (on_map): a first one is a new map."""
         self._merged_inputs: tuple | None = None
         """inputs() of the last merge done (rules.inputs_to_remember): the same again is skipped."""
 
@@ -167,6 +169,13 @@ class Merger:
     def request(self, reason: str, urgent: bool = False) -> int:
         """Ask for a merge (non-blocking); returns the request number. Urgent: skip min_gap_s."""
         return self.trigger.request(reason, urgent)
+
+    def on_map(self, vehicle_id: int, version: int) -> None:
+        """A received map arrived: merge once the arrivals settled (the first map of a vehicle is a
+        new map: more vehicles' first maps are likely still coming, rules.settled_at)."""
+        new = vehicle_id not in self._arrived
+        self._arrived.add(vehicle_id)
+        self.trigger.request(f"map of vehicle {vehicle_id} v{version}", new_map=new)
 
     def merge_now(self, timeout_s: float) -> dict:
         """Request a merge and wait for its outcome (coopctl merge-now)."""
@@ -199,7 +208,8 @@ class Merger:
         not_before = gap_until = 0.0
         while not self.trigger.stopped:
             due = self.trigger.wait_due(next_periodic, not_before, self.settings,
-                                        lambda: self.progress.beat(PROGRESS_NAME), BEAT_PERIOD_S)
+                                        lambda: self.progress.beat(PROGRESS_NAME), BEAT_PERIOD_S,
+                                        self.sources.awaited_maps)
             if due is None:
                 return
             ticket, urgent, reasons = due
@@ -207,11 +217,14 @@ class Merger:
                 next_periodic = time.monotonic() + self.settings.period_s
             if self.settings.enabled and self.available:
                 inputs = self.inputs()
+                now = time.monotonic()
                 if rules.skip_as_unchanged(urgent, inputs, self._merged_inputs, self.book.deferring,
-                                           self.book.holding):
+                                           self.book.holding, now >= self.book.defer_until):
                     self.counters["unchanged"] += 1
+                    if self.book.deferring:  # merge when the wait for a peer's search is over
+                        next_periodic = min(next_periodic, self.book.defer_until)
                 elif rules.confirm_too_early(urgent, self.book.holding, inputs, self.book.held_inputs,
-                                             time.monotonic(), gap_until):
+                                             now, gap_until):
                     not_before = gap_until  # the maps still change: merge after the usual gap
                     self.request("confirm")
                 else:

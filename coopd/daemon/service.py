@@ -318,6 +318,7 @@ class Daemon:
                 peer_results=self._peer_results,
                 publish_results=self._publish_results,
                 published_version=lambda v: map_versions.compose(self.epoch, v),
+                awaited_maps=None if self.sharing is None else self.sharing.awaited_maps,
             ),
             self.budget,
             merge_fn=self.merge_fn,
@@ -733,7 +734,7 @@ class Daemon:
 
     def _on_map_received(self, vehicle_id: int, version: int) -> None:
         if self.config.merging.on_receive:
-            self.merger.request(f"map of vehicle {vehicle_id} v{version}")
+            self.merger.on_map(vehicle_id, version)
 
     def _peer_results(self) -> list:
         return [] if self.sharing is None else self.sharing.results.all()

@@ -220,6 +220,12 @@ class PeerTable:
                 del self._peers[v]
             return gone
 
+    def alive(self, within_s: float) -> list[int]:
+        """Peers connected or seen within the last within_s seconds."""
+        now = self._clock()
+        with self._lock:
+            return [v for v, p in self._peers.items() if p.connected or now - p.last_seen <= within_s]
+
     def vehicle_ids(self) -> list[int]:
         with self._lock:
             return list(self._peers)

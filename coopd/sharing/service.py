@@ -167,6 +167,9 @@ class SharingService:
         """Targets that reached a vehicle already served at another address -> that vehicle id."""
         self._backoff: dict[tuple[str, int], tuple[float, int]] = {}
         """Targets whose handshake failed -> (monotonic time of the next try, failures in a row)."""
+        self._unnamed_at: dict[tuple[str, int], float] = {}
+        """Targets that answered (TCP) but whose handshake failed, and when: a peer whose map may
+        still come (awaited_maps); forgotten once a handshake there names the vehicle."""
         self._all_senders: set[_Sender] = set()
         self._lock = threading.Lock()
         self._scanner: threading.Thread | None = None
@@ -293,6 +296,26 @@ class SharingService:
             return None
         s = self.config.transport
         return wire.decode_map(stored.data, wire.DecodeLimits(max_cells=s.max_cells, max_bytes=s.max_bytes))
+
+    def awaited_maps(self) -> int:
+        """Maps still coming, which a first merge may wait for: peers alive (seen within two scan
+        periods over MTP, a liveliness token over Zenoh) whose map we do not hold, and over MTP the
+        peers that answered but are not named yet (a handshake under way, or one that failed within
+        two scan periods: on a loaded host handshakes time out and are retried)."""
+        window = 2 * self.config.scan_period
+        alive = set(self.peers.alive(window))
+        if self.zenoh is not None:
+            alive |= self.zenoh.vehicles_alive()
+        allowed = self.config.allowed_vehicles
+        if allowed:
+            alive &= set(allowed)
+        alive.discard(self.vehicle_id)
+        now = time.monotonic()
+        with self._lock:
+            unnamed = {s.target for s in self._all_senders if s.vid is None}
+            unnamed |= {t for t, at in self._unnamed_at.items() if now - at <= window}
+            unnamed -= self._self_targets | set(self._alias_targets)
+        return len(alive - {m.vehicle_id for m in self.received.all()}) + len(unnamed)
 
     # ------------------------------------------------------------------ receiving
     def _wants(self, origin: int, version: int) -> int:
@@ -519,6 +542,7 @@ class SharingService:
 
     def _register(self, vid: int, sender: "_Sender") -> bool:
         with self._lock:
+            self._unnamed_at.pop(sender.target, None)
             live = self._senders.get(vid)
             if live is not None and live.thread.is_alive() and live is not sender:
                 return False
@@ -530,6 +554,7 @@ class SharingService:
             self._all_senders.discard(sender)
             self._busy_targets.discard(sender.target)
             if handshake_failed:  # e.g. wrong swarm key or block size: retry later, not every scan
+                self._unnamed_at[sender.target] = time.monotonic()
                 _, n = self._backoff.get(sender.target, (0.0, 0))
                 delay = min(60.0, self.config.scan_period * 2 ** min(n, 10))
                 self._backoff[sender.target] = (time.monotonic() + delay, n + 1)
@@ -548,10 +573,12 @@ class SharingService:
     def _mark_self(self, target) -> None:
         with self._lock:
             self._self_targets.add(target)
+            self._unnamed_at.pop(target, None)
 
     def _mark_alias(self, target, vid: int) -> None:
         with self._lock:
             self._alias_targets[target] = vid
+            self._unnamed_at.pop(target, None)
 
     def stats(self) -> dict:
         """Everything coopctl status shows about sharing."""

@@ -49,6 +49,8 @@ KINDS = {"map": "map", "merge": "result", "delta": "delta"}
 """Key expression suffix -> the wire message kind it must carry."""
 QUEUE_MESSAGES = 8
 """Received publications waiting for the receive thread; more are dropped (counted)."""
+MAX_ALIVE = 1024
+"""Vehicles' liveliness tokens remembered at most (anyone on the network can declare one)."""
 QUERY_TIMEOUT_S = 5.0
 INBOX_LEDGER = "sharing-zenoh-inbox"
 """The memory budget's entry for received publications waiting for the receive thread."""
@@ -206,6 +208,7 @@ class ZenohLink:
         self._fetch: queue.Queue = queue.Queue(256)
         self._wanted: set[str] = set()  # vehicles waiting in _fetch (each once)
         self._wanted_lock = threading.Lock()
+        self._alive: set[int] = set()  # vehicles whose liveliness token is up (not authenticated)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.counters: Counter = Counter()
@@ -332,10 +335,22 @@ class ZenohLink:
         self._enqueue(str(sample.key_expr), sample.payload.to_bytes())
 
     def _on_alive(self, sample) -> None:
-        """A vehicle's liveliness token appeared: fetch its latest map and merge result."""
+        """A vehicle's liveliness token appeared: fetch its latest map and merge result; it went:
+        forget it."""
         parts = str(sample.key_expr).split("/")
-        if str(sample.kind).endswith("PUT") and len(parts) == 4 and parts[2] != str(self.vehicle_id):
+        if len(parts) != 4 or parts[2] == str(self.vehicle_id) or not parts[2].isdigit():
+            return
+        vid = int(parts[2])
+        if str(sample.kind).endswith("PUT"):
+            if len(self._alive) < MAX_ALIVE:
+                self._alive.add(vid)
             self._want(parts[2])
+        else:
+            self._alive.discard(vid)
+
+    def vehicles_alive(self) -> set[int]:
+        """Vehicles whose liveliness token is up: their maps are coming if not held yet."""
+        return set(self._alive)
 
     def _want(self, vid: str) -> None:
         """Have the fetch thread query this vehicle's latest map and merge result (once, however

@@ -551,7 +551,8 @@ def test_unchanged_inputs_are_not_merged_again_but_new_versions_and_merge_now_ar
         runner.join(5)
 
 
-def test_received_maps_merge_once_settled_and_at_most_a_gap_after_the_first():
+def _timed_merger(settings: MergerSettings) -> tuple[Merger, list[float], threading.Thread]:
+    """A running Merger on one received map whose merge_all accepts everything and notes when it ran."""
     calls = []
 
     def merge_all(reference, others, params, hints=None):
@@ -559,11 +560,16 @@ def test_received_maps_merge_once_settled_and_at_most_a_gap_after_the_first():
         return SimpleNamespace(global_map=reference.copy(), rounds=1, results=[
             SimpleNamespace(accepted=True, transform=np.eye(4), score=1.0, reason="test") for _ in others])
 
-    budget = MemoryBudget(64 << 20, baseline_bytes=0)
-    m = Merger(1, MergerSettings(period_s=3600, min_gap_s=1.5, settle_s=0.5), _one_map_sources(), budget,
-               merge_fn=merge_all)
+    m = Merger(1, settings, _one_map_sources(), MemoryBudget(64 << 20, baseline_bytes=0), merge_fn=merge_all)
+    m.merge_once("warm-up")  # compiled kernels loaded before anything is timed (a test run alone)
+    calls.clear()
     runner = threading.Thread(target=m.run, daemon=True)
     runner.start()
+    return m, calls, runner
+
+
+def test_received_maps_merge_once_settled_and_at_most_a_gap_after_the_first():
+    m, calls, runner = _timed_merger(MergerSettings(period_s=3600, min_gap_s=1.5, settle_s=0.5))
     try:
         t0 = time.monotonic()
         for _ in range(3):  # a burst of maps: one merge, settle_s after the last
@@ -577,6 +583,28 @@ def test_received_maps_merge_once_settled_and_at_most_a_gap_after_the_first():
             time.sleep(0.1)
         assert 2 <= len(calls) - 1 <= 3, np.diff(calls)
         assert calls[1] - t1 <= 1.5 + 0.5
+    finally:
+        m.stop()
+        runner.join(5)
+
+
+def test_first_maps_of_a_swarm_arriving_longer_than_a_gap_merge_in_one_go():
+    """A vehicle's first map is a new map: while new ones keep coming (a swarm's first exchange
+    spread over more than min_gap_s), the merge waits for the last; a vehicle's next versions do not
+    extend the wait (a peer publishing every second still merges every min_gap_s)."""
+    m, calls, runner = _timed_merger(MergerSettings(period_s=3600, min_gap_s=0.6, settle_s=0.3))
+    try:
+        t0 = time.monotonic()
+        for vid in range(2, 10):  # eight first maps over 1.4 s, 0.2 s apart
+            m.on_map(vid, 1)
+            time.sleep(0.2)
+        assert wait_until(lambda: calls, 5.0)
+        assert calls[0] - t0 >= 1.4 + 0.3 - 0.05 and len(calls) == 1
+        t1 = time.monotonic()
+        for version in range(2, 10):  # vehicle 2's next versions for 1.6 s: merged within a gap
+            m.on_map(2, version)
+            time.sleep(0.2)
+        assert len(calls) >= 2 and calls[1] - t1 <= 0.6 + 0.5, np.diff(calls)
     finally:
         m.stop()
         runner.join(5)

@@ -24,10 +24,33 @@ def test_requests_settle_after_the_last_one_but_at_most_a_gap_after_the_first():
     assert rules.settled_at(10.0, 14.5, 8.0, 5.0) == 18.0  # the cap is never below settle_s
 
 
+def test_maps_of_new_vehicles_still_arriving_extend_the_cap_to_a_few_gaps():
+    # a swarm's first exchange spread over 6 s: settle_s after the last new map, not 5 s after the first
+    assert rules.settled_at(10.0, 16.0, 2.0, 5.0, last_new_at=16.0) == 18.0
+    # updates of maps already merged do not extend it: settle_s after the last new one, or the usual cap
+    assert rules.settled_at(10.0, 16.0, 2.0, 5.0, last_new_at=12.0) == 15.0
+    assert rules.settled_at(10.0, 16.0, 2.0, 5.0, last_new_at=14.5) == 16.5
+    # bounded: new maps that never stop still merge NEW_MAPS_WAIT gaps after the first request
+    assert rules.settled_at(10.0, 40.0, 2.0, 5.0, last_new_at=40.0) == 10.0 + rules.NEW_MAPS_WAIT * 5.0
+    assert rules.settled_at(None, 40.0, 2.0, 5.0, last_new_at=40.0) == 0.0
+
+
+def test_peers_alive_whose_maps_have_not_come_hold_a_first_merge_up_to_the_cap():
+    cap = 10.0 + rules.NEW_MAPS_WAIT * 5.0
+    assert rules.settled_at(10.0, 11.0, 2.0, 5.0, last_new_at=11.0, awaiting=True) == cap
+    assert rules.settled_at(10.0, 11.0, 2.0, 5.0, last_new_at=11.0, awaiting=False) == 13.0
+    # only a request bringing a new vehicle's map waits for the others: updates merge as before
+    assert rules.settled_at(10.0, 11.0, 2.0, 5.0, last_new_at=None, awaiting=True) == 13.0
+
+
 def test_a_merge_of_unchanged_inputs_is_skipped_unless_something_still_waits():
     inputs = (3, ((2, 1),), ())
     assert rules.skip_as_unchanged(False, inputs, inputs, False, False)
     assert not rules.skip_as_unchanged(True, inputs, inputs, False, False)  # merge-now
+    # a search waiting for a peer: nothing to do on unchanged inputs until the wait is over
+    assert rules.skip_as_unchanged(False, inputs, inputs, True, False, deferral_over=False)
+    assert not rules.skip_as_unchanged(False, inputs, inputs, True, False, deferral_over=True)
+    assert not rules.skip_as_unchanged(False, inputs, inputs, True, True, deferral_over=False)  # holding
     assert not rules.skip_as_unchanged(False, inputs, inputs, True, False)  # a search waits for a peer
     assert not rules.skip_as_unchanged(False, inputs, inputs, False, True)  # fits to confirm
     assert not rules.skip_as_unchanged(False, (4, ((2, 1),), ()), inputs, False, False)

@@ -2,6 +2,7 @@
 publisher, the global map slot and the settings, without a merge thread or merge_all."""
 
 import threading
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -149,6 +150,73 @@ def test_the_trigger_holds_unsettled_requests_and_returns_none_once_stopped():
     trigger.stop()
     waiter.join(5)
     assert got == [None] and trigger.stopped and trigger.wait_completed(99, 0.0)
+
+
+def _requests_while_waiting(trigger: MergeTrigger, settings: MergerSettings, new_map: bool) -> float:
+    """Six requests 0.08 s apart (0.4 s) while the trigger is waited on; seconds until it was due."""
+    def send():
+        for vid in range(2, 8):
+            trigger.request(f"map of vehicle {vid}", new_map=new_map)
+            time.sleep(0.08)
+
+    sender = threading.Thread(target=send)
+    t0 = time.monotonic()
+    sender.start()
+    time.sleep(0.01)
+    ticket, _, _ = trigger.wait_due(1e12, 0.0, settings, lambda: None, 0.05)
+    waited = time.monotonic() - t0
+    sender.join(5)
+    trigger.complete(ticket)
+    if trigger.requested > ticket:  # serve what came after it was due
+        trigger.complete(trigger.wait_due(1e12, 0.0, settings, lambda: None, 0.05)[0])
+    return waited
+
+
+def test_the_trigger_waits_for_new_vehicles_maps_not_for_updates():
+    trigger = MergeTrigger()
+    settings = MergerSettings(period_s=3600, min_gap_s=0.2, settle_s=0.1)
+    # new maps for 0.4 s, longer than min_gap_s: due settle_s after the last one
+    assert 0.4 + 0.1 - 0.02 <= _requests_while_waiting(trigger, settings, new_map=True) < 0.75
+    # updates of maps already merged: min_gap_s after the first, as before (nothing new left over)
+    assert _requests_while_waiting(trigger, settings, new_map=False) < 0.35
+
+
+def test_the_trigger_waits_while_maps_are_awaited_and_asks_outside_its_lock():
+    trigger = MergeTrigger()
+    settings = MergerSettings(period_s=3600, min_gap_s=0.2, settle_s=0.1)
+    awaited = [2]
+
+    def still_coming() -> int:
+        assert trigger._cv.acquire(blocking=False)  # not held by the waiting thread
+        trigger._cv.release()
+        return awaited[0]
+
+    def arrive():
+        time.sleep(0.5)
+        awaited[0] = 0
+        trigger.request("map of vehicle 3", new_map=True)
+
+    t0 = time.monotonic()
+    trigger.request("map of vehicle 2", new_map=True)
+    threading.Thread(target=arrive).start()
+    ticket, _, reasons = trigger.wait_due(1e12, 0.0, settings, lambda: None, 0.05, still_coming)
+    assert 0.5 + 0.1 - 0.02 <= time.monotonic() - t0 < 0.9
+    assert reasons == ["map of vehicle 2", "map of vehicle 3"]
+    trigger.complete(ticket)
+    awaited[0] = 5  # awaited for ever: the first merge still comes, NEW_MAPS_WAIT caps after the first
+    t1 = time.monotonic()
+    trigger.request("map of vehicle 4", new_map=True)
+    trigger.wait_due(1e12, 0.0, settings, lambda: None, 0.05, still_coming)
+    assert 0.6 - 0.02 <= time.monotonic() - t1 < 0.9
+
+
+def test_a_period_long_past_does_not_cut_short_the_wait_for_first_maps():
+    trigger = MergeTrigger()
+    settings = MergerSettings(period_s=3600, min_gap_s=0.2, settle_s=0.3)
+    t0 = time.monotonic()
+    trigger.request("map of vehicle 2", new_map=True)
+    trigger.wait_due(0.0, 0.0, settings, lambda: None, 0.05)  # the period was due long ago (a frozen host)
+    assert time.monotonic() - t0 >= 0.3 - 0.02
 
 
 def test_the_global_map_slot_versions_installs_within_the_budget_and_releases_on_clear():

@@ -61,6 +61,27 @@ def test_two_peers_share_on_update_only(services):
     assert not failures(a) and not failures(b)
 
 
+def test_a_peer_met_whose_map_has_not_come_is_awaited_until_it_does(services):
+    port = free_port("127.0.0.21")
+    a = services(1, "127.0.0.21", port, peers=["127.0.0.22"], peer_ports=[port])
+    assert a.awaited_maps() == 0  # nobody met yet
+    b = services(2, "127.0.0.22", port, peers=["127.0.0.21"], peer_ports=[port])
+    a.publish(tm.make(1, 1, b"a" * 100), 1)
+    assert wait_until(lambda: b.received.version(1) == 1)  # a met b (hello): b's map is awaited
+    assert a.awaited_maps() == 1 and b.awaited_maps() == 0
+    b.publish(tm.make(2, 1, b"b" * 100), 1)
+    assert wait_until(lambda: a.received.version(2) == 1) and a.awaited_maps() == 0
+
+
+def test_a_peer_that_answers_but_fails_its_handshake_is_awaited_for_two_scan_periods(services):
+    port = free_port("127.0.0.21")
+    with socket.create_server(("127.0.0.22", port)):  # accepts, never says hello
+        a = services(1, "127.0.0.21", port, peers=["127.0.0.22"], peer_ports=[port],
+                     handshake_timeout=0.3)
+        assert wait_until(lambda: a.awaited_maps() == 1, 5)  # under way, then failed: awaited
+        assert wait_until(lambda: a.awaited_maps() == 0, 10)  # not answered again within two scans
+
+
 def test_newer_version_wins_older_is_refused(services):
     a = services(1)
     link = link_to(a, vid=5)

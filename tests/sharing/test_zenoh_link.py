@@ -87,6 +87,7 @@ def test_a_map_reaches_a_peer_newer_versions_follow_and_a_late_joiner_fetches_it
     try:
         assert a.address is None and a.stats()["transports"] == ["zenoh"]
         assert wait_until(lambda: a.stats()["zenoh"]["peers"], 10)
+        assert wait_until(lambda: a.awaited_maps() == 1, 10)  # b is alive (its token): its map is awaited
         a.publish(tm.make(1, 5, b"first"), 5)
         assert wait_until(lambda: b.received.version(1) == 5, 10), b.stats()["zenoh"]
         assert tm.payload(b.received.get(1).data) == b"first"
@@ -99,6 +100,9 @@ def test_a_map_reaches_a_peer_newer_versions_follow_and_a_late_joiner_fetches_it
         b.publish(tm.make(2, 9, b"b's"), 9)
         assert wait_until(lambda: a.received.version(2) == 9, 10)
         assert b.received.get(2) is None and failures(b) == {} and failures(a) == {}  # own maps not taken
+        assert a.awaited_maps() == 1  # the late vehicle published nothing
+        late.stop()
+        assert wait_until(lambda: a.awaited_maps() == 0, 10)  # its token went with it
     finally:
         for s in (a, b, late):
             if s is not None:
