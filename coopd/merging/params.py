@@ -98,6 +98,11 @@ class MergeParams:
     of the range each: outdoors the 'ceiling' is the top of 0.9 m barriers)."""
     search_peaks_per_yaw: int = 2
     search_suppress_m: float = 1.5
+    search_distinct_deg: float = 6.0
+    search_distinct_m: float = 1.5
+    """Across yaws, a peak within search_distinct_deg and search_distinct_m (where b's centre lands)
+    of a stronger one is a near-copy of it and is not handed on (yaw_search.distinct_peaks); 0
+    degrees keeps every peak."""
     search_candidates: int = 6
     """Best search peaks refined and validated."""
     # --- MTM and refinement (§8.8)
@@ -108,6 +113,11 @@ class MergeParams:
     """ICP steps: the first half shrink the correspondence radius from 6 to 1.5 cells, the rest hold it
     (14 left some transforms 0.2 m short of convergence)."""
     refine_max_points: int = 4000
+    refine_facing: bool = True
+    """ICP pairs a cell of b only with cells of a seen from the same side (refine.facing_bits): where
+    each map saw a wall from its own side, plain ICP pulled the two sides together (0.14 m and three
+    times the conflicts from the exact truth on fresh-world pairs), and the right hypothesis then
+    ranked below a wrong one."""
     refine_subcell: bool = True
     """After ICP, fit the chosen transform to a fraction of a cell (refine.field_fit: 6-DoF
     Levenberg-Marquardt of b's occupied cells on the trilinear distance to a's occupied cells that

@@ -42,8 +42,10 @@ def cube_count(sums, cx, cy, cz, s):
 
 
 @nb.njit(**_JIT)
-def _nearest_cells(occupied, sums, columns, offset, points, inv_res, max_cells, out_idx, out_dist):
-    """Nearest occupied cell of each point (cell-index units) within max_cells, searched in shells of
+def _nearest_cells(occupied, sums, columns, offset, points, inv_res, max_cells, out_idx, out_dist, sides,
+                   want):
+    """Nearest occupied cell of each point whose side bits (sides, per cell) meet the point's (want,
+    per point; ANY_SIDE takes every occupied cell) within max_cells, searched in shells of
     growing Chebyshev radius around the point's cell until no farther shell can hold a nearer one.
     Until a first occupied cell is met, a shell whose whole cube is empty (prefix sums) is skipped
     unvisited, and so is every column of a shell's side that holds no occupied cell in its z range
@@ -78,7 +80,7 @@ def _nearest_cells(occupied, sums, columns, offset, points, inv_res, max_cells, 
                     step = 1 if edge else max(1, 2 * s)
                     for dz in range(-s, s + 1, step):
                         z = cz + dz
-                        if z < 0 or z >= mz or not occupied[x, y, z]:
+                        if z < 0 or z >= mz or not occupied[x, y, z] or not sides[x, y, z] & want[p]:
                             continue
                         d = (x - kx) ** 2 + (y - ky) ** 2 + (z - kz) ** 2
                         if d < best:
@@ -144,31 +146,52 @@ class OccupiedCells:
     occupied: np.ndarray
     offset: np.ndarray
     resolution: float
+    sides: np.ndarray | None = None
+    """Per cell, the bits (1 << side, SIDES) of the sides it was seen from (facing_bits), or None:
+    then they come from cells, or every occupied cell pairs with any point."""
+    cells: np.ndarray | None = None
+    threshold: int = 0
+    """The grid's cells and occupied threshold, when side bits are made from them on the first query
+    that needs them (a map that is only ever b never pays for them)."""
+
+    @cached_property
+    def side_bits(self) -> np.ndarray:
+        """sides, or facing_bits of cells, or ANY_SIDE for every occupied cell."""
+        if self.sides is not None:
+            return self.sides
+        if self.cells is not None:
+            return facing_bits(self.cells, self.threshold)
+        return np.where(self.occupied, ANY_SIDE, 0).astype(np.uint8)
 
     @cached_property
     def index(self) -> tuple[np.ndarray, np.ndarray]:
         """search_index of the occupied cells, made on the first query (2 bytes and a bit a cell)."""
         return search_index(self.occupied)
 
-    def nearest(self, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    def nearest(self, points: np.ndarray, radius: float,
+                want: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(within, centres): which points have an occupied cell centre within radius (metres), and
-        the nearest such centre of each (rows of the others are undefined)."""
+        the nearest such centre of each (rows of the others are undefined); with want (side bits per
+        point), only cells seen from one of the point's sides count."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         idx = np.empty((len(points), 3), dtype=np.int64)
         dist = np.empty(len(points))
+        want = np.full(len(points), ANY_SIDE, dtype=np.uint8) if want is None else want
         _nearest_cells(self.occupied, *self.index, np.asarray(self.offset, dtype=np.int64), points,
-                       1.0 / self.resolution, radius / self.resolution, idx, dist)
+                       1.0 / self.resolution, radius / self.resolution, idx, dist, self.side_bits,
+                       np.ascontiguousarray(want, dtype=np.uint8))
         return np.isfinite(dist), (idx + self.offset) * self.resolution
 
 
 @nb.njit(**_JIT)
 def _icp_step(occupied, sums, columns, offset, resolution, source, moved, max_cells, idx, dist, previous,
-              has_previous, min_pairs):
+              has_previous, min_pairs, sides, want):
     """One ICP step: the nearest occupied cell of each moved point within max_cells, then (count of
     points with one, same pairs as `previous`, the rigid fit of those pairs). The fit is computed only
     when there are at least min_pairs pairs and they changed; previous (the last pairs' cells, -1 rows
     for points without one) is updated then."""
-    _nearest_cells(occupied, sums, columns, offset, moved, 1.0 / resolution, max_cells, idx, dist)
+    _nearest_cells(occupied, sums, columns, offset, moved, 1.0 / resolution, max_cells, idx, dist, sides,
+                   want)
     n = 0
     same = has_previous
     for p in range(moved.shape[0]):
@@ -200,12 +223,15 @@ ICP_MIN_PAIRS = 10
 """ICP stops when fewer points than this have a partner within the radius."""
 
 
-def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray,
-        iterations: int) -> tuple[np.ndarray, float]:
+def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray, iterations: int,
+        normals: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """(refined T, inlier fraction): source points (b frame) pulled onto the target's occupied cell
     centres (a frame). Each step pairs every point with the nearest centre within a radius that
     shrinks from 6 to 1.5 cells over the first half of the steps and is then held; unchanged pairs
-    skip the fit, and end the refinement under the held radius (every further step would repeat)."""
+    skip the fit, and end the refinement under the held radius (every further step would repeat).
+    With the source points' free-side normals (free_sides) and the target's side bits, a point pairs
+    only with cells seen from the side it was seen from: the two sides of a wall, each seen by one
+    map, are not pulled together."""
     t = np.asarray(t0, dtype=np.float64).copy()
     coarse = max(1, iterations // 2)
     held = np.full(max(0, iterations - coarse), 1.5)
@@ -217,11 +243,16 @@ def icp(target: OccupiedCells, source: np.ndarray, t0: np.ndarray,
     previous = np.empty((len(source), 3), dtype=np.int64)
     frac = 0.0
     has_previous = False
+    want = np.full(len(source), ANY_SIDE, dtype=np.uint8)
+    if normals is not None:
+        normals = np.ascontiguousarray(normals, dtype=np.float64)
     for k, r in enumerate(radii):
         moved = np.ascontiguousarray(apply(t, source))
+        if normals is not None:
+            _side_bits_into(normals, np.ascontiguousarray(t[:3, :3]), want)
         n, same, fitted = _icp_step(target.occupied, *target.index, offset,
                                     float(target.resolution), points, moved, r / target.resolution, idx, dist,
-                                    previous, has_previous, ICP_MIN_PAIRS)
+                                    previous, has_previous, ICP_MIN_PAIRS, target.side_bits, want)
         frac = n / len(source) if len(source) else 0.0
         if n < ICP_MIN_PAIRS:
             break
@@ -403,6 +434,58 @@ def _twist(xi: np.ndarray, centre: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = r
     out[:3, 3] = centre - r @ centre + xi[3:]
+    return out
+
+
+ANY_SIDE = (1 << SIDES) - 1
+"""Side bits of a cell or point with no free side: it pairs with any."""
+
+
+@nb.njit(**_JIT)
+def facing_bits(cells, threshold):
+    """Per cell, the bits (1 << side) of the SIDES its free-side normal has at least FACING_MIN along
+    (one, or two or three for a diagonal surface); ANY_SIDE for an occupied cell with no free side,
+    0 for cells not occupied: what icp pairs a point seen from a side with."""
+    mx, my, mz = cells.shape
+    out = np.zeros(cells.shape, dtype=np.uint8)
+    for x in range(mx):
+        for y in range(my):
+            for z in range(mz):
+                if cells[x, y, z] < threshold:
+                    continue
+                n = _free_side(cells, threshold, x, y, z)
+                bits = 0
+                for a in range(3):
+                    if n[a] >= FACING_MIN:
+                        bits |= 1 << (2 * a)
+                    elif n[a] <= -FACING_MIN:
+                        bits |= 1 << (2 * a + 1)
+                out[x, y, z] = bits if bits else ANY_SIDE
+    return out
+
+
+@nb.njit(**_JIT)
+def _side_bits_into(normals, rotation, out):
+    """out[i] = facing_bits of normal i turned by rotation (ANY_SIDE for a zero normal)."""
+    for i in range(normals.shape[0]):
+        bits = 0
+        for a in range(3):
+            n = normals[i]
+            c = rotation[a, 0] * n[0] + rotation[a, 1] * n[1] + rotation[a, 2] * n[2]
+            if c >= FACING_MIN:
+                bits |= 1 << (2 * a)
+            elif c <= -FACING_MIN:
+                bits |= 1 << (2 * a + 1)
+        zero = normals[i, 0] == 0.0 and normals[i, 1] == 0.0 and normals[i, 2] == 0.0
+        out[i] = ANY_SIDE if zero or bits == 0 else bits
+
+
+def side_bits(normals: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """facing_bits of points from their free-side normals (b frame) turned by rotation into a's frame;
+    ANY_SIDE for a point with none."""
+    out = np.empty(len(normals), dtype=np.uint8)
+    _side_bits_into(np.ascontiguousarray(normals, dtype=np.float64),
+                    np.ascontiguousarray(rotation, dtype=np.float64), out)
     return out
 
 

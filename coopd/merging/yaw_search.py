@@ -186,10 +186,39 @@ def search(a_grid: OccupancyGrid, b_grid: OccupancyGrid, params: MergeParams,
         scores, rows, cols = _peaks(score, params.search_peaks_per_yaw, rad)
         peaks += [(float(s), yaw, int(i), int(j)) for s, i, j in zip(scores, rows, cols, strict=True)]
     peaks.sort(key=lambda x: -x[0])
+    scores = np.array([p[0] for p in peaks])
+    yaws = np.array([p[1] for p in peaks])
+    rows = np.array([p[2] for p in peaks])
+    cols = np.array([p[3] for p in peaks])
+    si = np.where(rows <= a_ext[0], rows, rows - n[0])  # shifts span [-b_ext, a_ext]: one period
+    sj = np.where(cols <= a_ext[1], cols, cols - n[1])
+    landing = a_org - b_org + np.stack([si, sj], axis=1) * cell  # where b's wall centre lands in a
+    if params.search_distinct_deg > 0:
+        keep = distinct_peaks(yaws, landing, np.radians(params.search_distinct_deg),
+                              params.search_distinct_m, limit)
+    else:
+        keep = list(range(len(peaks)))[:limit]
     found = []
-    for s, yaw, i, j in peaks[:limit]:
-        si = i if i <= a_ext[0] else i - n[0]  # shifts span [-b_ext, a_ext]: one period
-        sj = j if j <= a_ext[1] else j - n[1]
-        t_xy = a_org - b_org + np.array([si, sj]) * cell - rotation_z(yaw)[:2, :2] @ centre
-        found.append((s, rigid(rotation_z(yaw), [t_xy[0], t_xy[1], tz])))
+    for k in keep:
+        t_xy = landing[k] - rotation_z(yaws[k])[:2, :2] @ centre
+        found.append((float(scores[k]), rigid(rotation_z(yaws[k]), [t_xy[0], t_xy[1], tz])))
     return found
+
+
+def distinct_peaks(yaws: np.ndarray, landing: np.ndarray, min_yaw: float, min_shift: float,
+                   limit: int | None = None) -> list[int]:
+    """Indices of the peaks (strongest first) kept by non-maximum suppression across yaws: a peak
+    within min_yaw (radians) and min_shift (metres, where b's centre lands) of a stronger kept one
+    is a near-copy of it (neighbouring yaw steps of one rotation) and is dropped, so the hypotheses
+    refined are different rotations or places rather than one rotation several times."""
+    keep: list[int] = []
+    for k in range(len(yaws)):
+        if limit is not None and len(keep) >= limit:
+            break
+        if keep:
+            turn = np.abs(np.angle(np.exp(1j * (yaws[keep] - yaws[k]))))
+            apart = np.linalg.norm(landing[keep] - landing[k], axis=1)
+            if np.any((turn <= min_yaw) & (apart <= min_shift)):
+                continue
+        keep.append(k)
+    return keep

@@ -101,7 +101,7 @@ def main() -> int:
 
     pa, pb = prepare(a, params, lazy=True), prepare(b, params, lazy=True)
     truth = invert(a_map.world_from_map) @ b_map.world_from_map
-    source = _refine_points(pb, params)
+    source, normals = _refine_points(pb, params)
     moved = apply(truth, source) + np.array([0.1, 0.0, 0.0])
     centres = pa.summary.occupied_m
     tree, build = cpu_best(lambda: cKDTree(centres), args.repeat)
@@ -116,7 +116,8 @@ def main() -> int:
               occupied_cells=len(centres), same_distances=same)
     start = truth.copy()
     start[:3, 3] += [0.3, -0.2, 0.0]
-    _, ours = cpu_best(lambda: icp(pa.occupied, source, start, params.refine_iterations), args.repeat)
+    sides = normals if params.refine_facing else None  # as the pipeline refines
+    _, ours = cpu_best(lambda: icp(pa.occupied, source, start, params.refine_iterations, sides), args.repeat)
     entry("icp (one hypothesis, 0.36 m off)", ours, points=len(source))
     write_atomic(args.out, (json.dumps(report, indent=1) + "\n").encode())
     print(json.dumps(report, indent=1))

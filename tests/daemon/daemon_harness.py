@@ -17,6 +17,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 from coopd.daemon import control  # noqa: E402
+from coopd.geometry import rotation_angle_deg  # noqa: E402
 from firmware_sim.accuracy import map_accuracy  # noqa: E402
 from tests.ports import process_slot  # noqa: E402
 
@@ -104,24 +105,12 @@ class Sim:
     def to_world(self, i: int, origin_fc_enu):
         """Map frame of vehicle i's coopd -> world: its odometry frame is the true start pose
         (origin on the floor, yawed by heading - 90 deg, docs/firmware_sim.md), shifted by the map origin."""
-        x, y, _, yaw = self.vehicles[i]["start_pose"]
-        c, s = np.cos(yaw - np.pi / 2), np.sin(yaw - np.pi / 2)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        origin = np.asarray(origin_fc_enu, dtype=np.float64)
-        return lambda p: (np.asarray(p) + origin) @ rot.T + np.array([x, y, 0.0])
+        t = map_to_world(self.vehicles[i]["start_pose"], origin_fc_enu)
+        return lambda p: np.asarray(p) @ t[:3, :3].T + t[:3, 3]
 
     def relative_transform(self, i: int, j: int, origin_i, origin_j) -> np.ndarray:
         """4x4 transform carrying points of vehicle j's map frame into vehicle i's (the true offset)."""
-
-        def map_to_world(k, origin):
-            x, y, _, yaw = self.vehicles[k]["start_pose"]
-            t = np.eye(4)
-            c, s = np.cos(yaw - np.pi / 2), np.sin(yaw - np.pi / 2)
-            t[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-            t[:3, 3] = t[:3, :3] @ np.asarray(origin, dtype=np.float64) + [x, y, 0.0]
-            return t
-
-        return np.linalg.inv(map_to_world(i, origin_i)) @ map_to_world(j, origin_j)
+        return true_offset(self.vehicles[i]["start_pose"], origin_i, self.vehicles[j]["start_pose"], origin_j)
 
     def accuracy(self, grid, i: int, origin_fc_enu) -> dict:
         from firmware_sim.worlds import build_world
@@ -129,6 +118,30 @@ class Sim:
         world = build_world(self.world, self.seed)
         gt, gt_origin = world.ground_truth(0.1)
         return map_accuracy(grid, self.to_world(i, origin_fc_enu), gt, gt_origin)
+
+
+def map_to_world(start_pose, origin_fc_enu) -> np.ndarray:
+    """4x4 transform of a coopd's map frame into the simulated world: its odometry frame is the true
+    start pose (x, y, z, yaw; origin on the floor, yawed by heading - 90 deg, docs/firmware_sim.md),
+    shifted by the map origin (status link.map_origin_fc_enu)."""
+    x, y, _, yaw = start_pose
+    t = np.eye(4)
+    c, s = np.cos(yaw - np.pi / 2), np.sin(yaw - np.pi / 2)
+    t[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    t[:3, 3] = t[:3, :3] @ np.asarray(origin_fc_enu, dtype=np.float64) + [x, y, 0.0]
+    return t
+
+
+def true_offset(start_i, origin_i, start_j, origin_j) -> np.ndarray:
+    """4x4 transform carrying points of vehicle j's map frame into vehicle i's (what merging should find)."""
+    return np.linalg.inv(map_to_world(start_i, origin_i)) @ map_to_world(start_j, origin_j)
+
+
+def offset_error(found, truth) -> tuple[float, float]:
+    """(metres, degrees) between a found transform (4x4, or 16 numbers row-major) and the true one."""
+    found = np.asarray(found, dtype=np.float64).reshape(4, 4)
+    return (float(np.linalg.norm(found[:3, 3] - truth[:3, 3])),
+            rotation_angle_deg(found[:3, :3].T @ truth[:3, :3]))
 
 
 def in_process_memory_mb(headroom_mb: int = 512) -> int:

@@ -67,3 +67,41 @@ def test_fft_lengths_are_the_smallest_5_smooth_lengths_not_below_n():
     for n in list(range(1, 400)) + [1021, 4097, 65537]:
         got = yaw_search.fast_fft_length(n)
         assert got >= n and smooth(got) and not any(smooth(m) for m in range(n, got)), n
+
+
+def test_peaks_near_a_stronger_one_in_yaw_and_landing_are_dropped():
+    """Non-maximum suppression across yaws: a peak within the yaw and landing distances of a stronger
+    kept one (the next yaw step of the same rotation) is a near-copy; farther in yaw or in landing,
+    it is a hypothesis of its own. Yaws wrap at a full turn."""
+    deg = np.radians
+    yaws = deg(np.array([20.0, 22.0, 20.0, 30.0, 359.0, 1.0, 18.5]))
+    landing = np.array([[0.0, 0.0], [0.5, 0.0], [3.0, 0.0], [0.0, 0.0], [5.0, 5.0], [5.0, 5.5], [0.0, 1.0]])
+    keep = yaw_search.distinct_peaks(yaws, landing, deg(6.0), 1.5)
+    assert keep == [0, 2, 3, 4]
+    assert yaw_search.distinct_peaks(yaws, landing, deg(6.0), 1.5, limit=2) == [0, 2]
+    assert yaw_search.distinct_peaks(yaws, landing, deg(1.0), 0.1) == list(range(7))
+
+
+def test_the_search_hands_on_distinct_hypotheses(near_pair):
+    """No two of the search's hypotheses are near-copies (within the distinct yaw and landing
+    distances); without the suppression the strongest peaks include such copies on this pair."""
+    params = coopd_params()
+    found = yaw_search.search(near_pair.a, near_pair.b, params, params.search_candidates)
+    copies = yaw_search.search(near_pair.a, near_pair.b, params.with_(search_distinct_deg=0.0),
+                               params.search_candidates)
+
+    def yaw(t):
+        return np.arctan2(t[1, 0], t[0, 0])
+
+    def near_copies(hyps):
+        """Pairs within the distinct yaw whose b origins land within 0.5 m of each other (b's wall
+        centre, which the search measures landing at, moves less than a metre more for such turns)."""
+        limit = np.radians(params.search_distinct_deg)
+        return sum(abs(np.angle(np.exp(1j * (yaw(ti) - yaw(tj))))) <= limit
+                   and np.linalg.norm(ti[:2, 3] - tj[:2, 3]) < 0.5
+                   for k, (_, ti) in enumerate(hyps) for _, tj in hyps[:k])
+
+    assert len(found) == params.search_candidates
+    assert near_copies(copies) > 0
+    assert near_copies(found) == 0
+    assert found[0][0] == copies[0][0] and np.array_equal(found[0][1], copies[0][1])

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from coopd.geometry import rotation_angle_deg
-from coopd.merging.pair import merge_pair
+from coopd.merging.pair import close_runner_up, merge_pair
 from coopd.merging.params import coopd_params, thesis_params
 
 
@@ -57,3 +57,13 @@ def test_merge_pair_registers_to_a_fraction_of_a_cell(near_pair):
     moved = np.linalg.norm(apply(r.transform, points) - apply(near_pair.a_from_b, points), axis=1).mean()
     print(f"mean displacement {moved:.4f} m, {_errors(r.transform, near_pair.a_from_b)[0]:.3f} deg")
     assert moved <= b.resolution / 3
+
+
+def test_a_runner_up_is_close_against_the_support_of_what_is_accepted():
+    """The margin test: a distinct runner-up within min_margin of the winner's support is close. Given
+    the support the winner keeps after its sub-cell fit (the lower of before and after), a fit that
+    lost most of it leaves the decision ambiguous."""
+    assert close_runner_up(6000.0, 6983.0, 0.15)
+    assert not close_runner_up(5109.0, 6983.0, 0.15)
+    assert close_runner_up(5109.0, min(6983.0, 110.0), 0.15)
+    assert not close_runner_up(-50.0, 110.0, 0.15)

@@ -243,3 +243,66 @@ def test_nearest_occupied_cell_in_a_tall_sparse_grid_is_the_exact_nearest():
         assert np.array_equal(within, np.isfinite(d_ref)) and within.sum() > 100
         np.testing.assert_allclose(np.linalg.norm(nearest[within] - points[within], axis=1), d_ref[within],
                                    atol=1e-9)
+
+
+def test_facing_bits_say_which_side_a_cell_was_seen_from():
+    """A wall seen from one side: its cells face that side; a cell with free space all round has no
+    side (pairs with any); cells not occupied have no bits."""
+    cells = np.full((9, 9, 9), -1, dtype=np.int8)
+    cells[:4] = 10  # free space at x < 4
+    cells[4] = 80  # a wall at x = 4, seen from -x
+    cells[1, 4, 4] = 80  # a speck inside the free space
+    bits = refine.facing_bits(cells, 50)
+    minus_x = 1 << 1
+    assert np.all(bits[4, 1:-1, 1:-1] == minus_x)
+    assert bits[1, 4, 4] == refine.ANY_SIDE
+    assert np.all(bits[:4][cells[:4] < 50] == 0) and np.all(bits[5:] == 0)
+
+
+def test_side_bits_of_turned_normals():
+    """A point's side bits follow its normal turned into a's frame: +x turned half a turn faces -x, a
+    diagonal normal faces two sides, no normal pairs with any side."""
+    normals = np.array([[1.0, 0, 0], [np.sqrt(0.5), np.sqrt(0.5), 0], [0, 0, 0]])
+    assert refine.side_bits(normals, np.eye(3)).tolist() == [1, 1 | 4, refine.ANY_SIDE]
+    assert refine.side_bits(normals, rotation_z(np.pi)[:3, :3]).tolist() == [2, 2 | 8, refine.ANY_SIDE]
+
+
+def test_nearest_cell_seen_from_the_wanted_side_is_the_exact_nearest():
+    """With side bits, the shell search (and its skips) finds the nearest centre among the cells that
+    share a bit with the point's, as brute force does; the plain search ignores the bits."""
+    rng = np.random.default_rng(9)
+    occupied = rng.random((24, 20, 90)) < 0.01
+    sides = np.where(occupied, 1 << rng.integers(0, 6, occupied.shape), 0).astype(np.uint8)
+    offset = np.array([3, -5, -40])
+    target = OccupiedCells(occupied, offset, 0.1, sides)
+    keys = np.argwhere(occupied)
+    centres = (keys + offset) * 0.1
+    points = rng.uniform(centres.min(axis=0) - 0.3, centres.max(axis=0) + 0.3, (1500, 3))
+    want = (1 << rng.integers(0, 6, len(points))).astype(np.uint8)
+    want[::7] = refine.ANY_SIDE
+    within, nearest = target.nearest(points, 0.6, want)
+    d = np.linalg.norm(points[:, None, :] - centres[None, :, :], axis=2)
+    d[(sides[tuple(keys.T)][None, :] & want[:, None]) == 0] = np.inf
+    d_ref = d.min(axis=1)
+    d_ref[d_ref > 0.6] = np.inf
+    assert np.array_equal(within, np.isfinite(d_ref)) and within.sum() > 300
+    np.testing.assert_allclose(np.linalg.norm(nearest[within] - points[within], axis=1), d_ref[within],
+                               atol=1e-9)
+    plain_within, _ = OccupiedCells(occupied, offset, 0.1).nearest(points, 0.6, want)
+    assert plain_within.sum() > within.sum()
+
+
+def test_icp_pairing_same_facing_cells_stays_at_the_truth(world):
+    """On a pair where the drones saw walls from their two sides, ICP started from the truth walks
+    0.1 m away pairing any cells, and stays within 0.05 m pairing only cells seen from the same side."""
+    from firmware_sim.benchset import make_pair
+
+    pair = make_pair(world, 7, 5.0)
+    a, b = pair.a, pair.b
+    src = _occupied_m(b)[:: max(1, int((b.cells >= 50).sum()) // 4000)]
+    normals = free_sides(b.cells, 50, b.offset, b.resolution, src)
+    facing = OccupiedCells(a.cells >= 50, a.offset, a.resolution, refine.facing_bits(a.cells, 50))
+    plain, _ = icp(_target(a), src, pair.a_from_b, 28)
+    sided, _ = icp(facing, src, pair.a_from_b, 28, normals)
+    assert _displacement(plain, pair.a_from_b, src) > 0.08
+    assert _displacement(sided, pair.a_from_b, src) < 0.05
