@@ -40,10 +40,11 @@ def test_mavsdk_arm_takeoff_offboard_land(port_block):
         system = m.first_autopilot(10.0)
         assert system is not None and system.is_connected()
         telemetry, action, offboard = Telemetry(system), Action(system), Offboard(system)
-        health = poll(
-            lambda: (h := telemetry.health()).is_armable and h.is_local_position_ok and h,
+        health = poll(  # home and global position may come a moment after armable under load
+            lambda: (h := telemetry.health()).is_armable and h.is_local_position_ok
+            and h.is_home_position_ok and h.is_global_position_ok and h,
             15,
-            "health: armable with a local position",
+            "health: armable with local, global and home positions",
         )
         assert health.is_home_position_ok and health.is_global_position_ok
         pv = poll(
