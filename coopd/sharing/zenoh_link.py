@@ -104,14 +104,15 @@ def key_expr(swarm: str, vehicle_id: int, kind: str) -> str:
     return f"coopd/{swarm}/{vehicle_id}/{kind}"
 
 
-def parse_key(swarm: str, key: str) -> tuple[int, str] | None:
-    """(vehicle id, wire kind) of a key expression this swarm publishes on, or None."""
+def parse_key(swarm: str, key: str, kinds=KINDS) -> tuple[int, str] | None:
+    """(vehicle id, kind) of a key expression of this swarm, or None: `kinds` maps the last chunk to
+    the kind returned (by default the wire kinds published; {"alive": "alive"} for liveliness)."""
     parts = key.split("/")
-    if len(parts) != 4 or parts[0] != "coopd" or parts[1] != swarm or parts[3] not in KINDS:
+    if len(parts) != 4 or parts[0] != "coopd" or parts[1] != swarm or parts[3] not in kinds:
         return None
     if not parts[2].isdigit() or len(parts[2]) > 3 or int(parts[2]) not in VEHICLE_IDS:
         return None
-    return int(parts[2]), KINDS[parts[3]]
+    return int(parts[2]), kinds[parts[3]]
 
 
 def envelope_cipher(swarm_key: bytes):
@@ -337,14 +338,14 @@ class ZenohLink:
     def _on_alive(self, sample) -> None:
         """A vehicle's liveliness token appeared: fetch its latest map and merge result; it went:
         forget it."""
-        parts = str(sample.key_expr).split("/")
-        if len(parts) != 4 or parts[2] == str(self.vehicle_id) or not parts[2].isdigit():
+        parsed = parse_key(self.settings.swarm, str(sample.key_expr), {"alive": "alive"})
+        if parsed is None or parsed[0] == self.vehicle_id:
             return
-        vid = int(parts[2])
+        vid = parsed[0]
         if str(sample.kind).endswith("PUT"):
             if len(self._alive) < MAX_ALIVE:
                 self._alive.add(vid)
-            self._want(parts[2])
+            self._want(str(vid))
         else:
             self._alive.discard(vid)
 

@@ -55,6 +55,14 @@ def test_only_this_swarms_keys_are_parsed():
         assert parse_key("s", key) is None, key
 
 
+def test_liveliness_keys_name_a_valid_vehicle_of_this_swarm():
+    alive = {"alive": "alive"}
+    assert parse_key("t", "coopd/t/7/alive", alive) == (7, "alive")
+    for key in ("coopd/t/7/map", "coopd/other/7/alive", "coopd/t/x/alive", "coopd/t/0/alive",
+                "coopd/t/" + "9" * 5000 + "/alive", "coopd/t/7/alive/extra"):
+        assert parse_key("t", key, alive) is None, key
+
+
 def test_settings_are_checked():
     for bad in (dict(swarm="a/b"), dict(swarm=""), dict(mode="linkstate"), dict(listen=("0.0.0.0:7447",)),
                 dict(connect=("tcp/",))):
