@@ -27,7 +27,7 @@ import numpy as np
 from ..geometry import apply, rotation_angle_deg, rotation_z
 from ..grid import UNKNOWN, OccupancyGrid
 from ..merging.hints import validate_hint
-from ..merging.pair import MergeResult, PreparedMap, prepare
+from ..merging.pair import MergeResult, PreparedMap, as_given, prepare
 from ..merging.params import MergeParams, coopd_params
 from ..merging.validation import agreement
 from .mapper import Mapper
@@ -94,12 +94,16 @@ def register(own: PreparedMap, local: PreparedMap, guess: np.ndarray, params: Me
              spread_m: float) -> MergeResult:
     """The local map's fit on the own map (validate_hint: ICP then a merge's validation, refused if ICP
     moved it far) from the guess, or when that is refused the best-validated one over the other
-    starts; when none is accepted, the best refused one."""
+    starts; when none is accepted, the best refused one. The guess itself is kept when it validates
+    and scores at least as well: ICP maximises the cells it pairs, and on a local map of a few frames
+    it can move a near-exact guess 0.3 m and 2-4 deg to a fit with more paired cells and more
+    conflicts (a score of 0.965 against the guess's 0.973)."""
+    held = as_given(own, local, guess, params, method="hold guess")
     first = validate_hint(own, local, guess, params)
-    if first.accepted:
-        return first
-    results = [first] + [validate_hint(own, local, s, params) for s in starts(guess, spread_m)[1:]]
-    return max(results, key=lambda r: (r.accepted, r.score, r.agreement))
+    if not first.accepted:
+        results = [first] + [validate_hint(own, local, s, params) for s in starts(guess, spread_m)[1:]]
+        first = max(results, key=lambda r: (r.accepted, r.score, r.agreement))
+    return held if held.accepted and (not first.accepted or held.score >= first.score) else first
 
 
 def slide_direction(own: PreparedMap, local: PreparedMap, transform: np.ndarray, slide_m: float,

@@ -32,9 +32,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..geometry import check_rigid, invert, rotation_angle_deg
-from .pair import MergeResult, PreparedMap, distinct, judge, rejection, share
+from .pair import MergeResult, PreparedMap, as_given, distinct, judge
 from .params import MergeParams
-from .validation import agreement
 
 MAX_HINTS = 4
 """Hints tried per input map at most (each costs an ICP and a validation)."""
@@ -83,12 +82,8 @@ def check_vouched(via: PreparedMap, b: PreparedMap, hint: Hint, base: np.ndarray
     """A vouched hint accepted without refinement when its edge passes validation's thresholds on the
     two maps it joins (b onto the via map, min_inliers aside: no ICP ran); its transform into the
     reference frame is base (the via map's) @ the edge. None: refine and validate it as any hint."""
-    ag = agreement(via.summary, b.summary, hint.transform)
-    overlap = share(ag, via, b)
-    if rejection(ag, params.min_inliers, overlap, params) is not None:
-        return None
-    return MergeResult(True, base @ hint.transform, 0, ag.score, ag.agree, ag.conflicts, 0.0,
-                       "accepted", overlap, method=f"hint:{hint.source}")
+    r = as_given(via, b, hint.transform, params, method=f"hint:{hint.source}")
+    return replace(r, transform=base @ hint.transform) if r.accepted else None
 
 
 def try_hints(a: PreparedMap, b: PreparedMap, candidates: list[tuple[np.ndarray, str]],

@@ -199,6 +199,16 @@ def judge(a: PreparedMap, b: PreparedMap, transform: np.ndarray, params: MergePa
                        reason, overlap)
 
 
+def as_given(a: PreparedMap, b: PreparedMap, transform: np.ndarray, params: MergeParams,
+             method: str = "given") -> MergeResult:
+    """A transform validated as it is, without refinement (min_inliers aside: no ICP ran)."""
+    ag = agreement(a.summary, b.summary, transform)
+    overlap = share(ag, a, b)
+    reason = rejection(ag, params.min_inliers, overlap, params) or "accepted"
+    return MergeResult(reason == "accepted", transform, 0, ag.score, ag.agree, ag.conflicts, 0.0, reason,
+                       overlap, method=method)
+
+
 def distinct(t1: np.ndarray, t2: np.ndarray, angle_deg: float = 5.0, shift_m: float = 1.0) -> bool:
     """Two transforms that are different hypotheses (> 5 deg or > 1 m apart), not one refined twice."""
     return (rotation_angle_deg(t1[:3, :3].T @ t2[:3, :3]) > angle_deg

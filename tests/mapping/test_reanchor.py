@@ -1,13 +1,16 @@
 """Re-anchoring the FC's new frame on the map: a short local map registered from the hold guess."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from coopd.geometry import invert, matrix_to_quat, quat_to_matrix, rotation_angle_deg, rotation_z
 from coopd.mapping import Intrinsics, Mapper, MapperConfig, Pose
-from coopd.mapping.reanchor import FrameReanchor, ReanchorConfig, gravity_aligned
+from coopd.mapping import reanchor as reanchor_module
+from coopd.mapping.reanchor import FrameReanchor, ReanchorConfig, gravity_aligned, reanchor_params, register
+from coopd.merging.pair import as_given, prepare
 from coopd.vehicle.frame_continuity import FC_REBOOT, FrameContinuity
 from coopd.vehicle.pose_buffer import PoseSample
 from tests.synthetic_scenes import render_depth, room_scene, survey_poses
@@ -89,6 +92,29 @@ def test_a_guess_too_far_off_is_refused_and_mapping_stays_paused(mapped):
     assert frames.paused is not None and "re-anchoring:" in frames.paused
     s = reanchor.status()
     assert s["counters"]["refused"] >= 1 and "anchored" not in s["counters"]
+
+
+@pytest.mark.parametrize("guess_is_true", [True, False])
+def test_validation_picks_between_the_hold_guess_and_icps_fit(mapped, monkeypatch, guess_is_true):
+    """ICP maximises the cells it pairs: on a short local map it can slide a near-exact guess to a fit
+    that validates worse. The guess is kept then; ICP's fit wins when it scores better."""
+    scene, poses, mapper = mapped
+    local = Mapper(MapperConfig())
+    for p in poses[:8]:
+        local.integrate(render_depth(scene, INTR, p), INTR, p)
+    params = reanchor_params()
+    own_p = prepare(mapper.grid, params, lazy=True)
+    local_p = prepare(local.grid.shrunk(pad=1), params, lazy=True)
+    truth, slid = np.eye(4), np.eye(4)  # the local map was made in the map frame
+    slid[:3, :3] = rotation_z(math.radians(2.5))
+    slid[:3, 3] = (0.3, 0.0, 0.0)
+    guess, icp_fit = (truth, slid) if guess_is_true else (slid, truth)
+    icp = replace(as_given(own_p, local_p, icp_fit, params), accepted=True)
+    monkeypatch.setattr(reanchor_module, "validate_hint", lambda *args: icp)
+    r = register(own_p, local_p, guess, params, 0.4)
+    assert np.allclose(r.transform, truth) and r.accepted
+    assert r.method == ("hold guess" if guess_is_true else icp.method)
+    assert as_given(own_p, local_p, truth, params).score > as_given(own_p, local_p, slid, params).score
 
 
 def test_gravity_aligned_keeps_the_pivot_and_drops_the_tilt():
