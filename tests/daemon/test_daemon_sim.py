@@ -150,6 +150,31 @@ def test_daemon_maps_route_survives_faults_and_resumes():
     shutil.rmtree(wd, ignore_errors=True)
 
 
+CONFIRM_S = 90.0
+"""How long test_two_daemons_share_their_maps merges again while a vehicle's fit is provisional (quiet
+machine: the right fit is confirmed about 10 s after the maps are first exchanged)."""
+
+
+def merge_now(d: Coopd) -> dict:
+    """`coopctl merge-now --json` on daemon d: the merge's outcome."""
+    cli = subprocess.run([PYTHON, "-m", "coopd.cli.coopctl", "merge-now", "--json", "--socket", d.socket],
+                         capture_output=True, text=True, env=env(), cwd=ROOT, timeout=130)
+    outcome = json.loads(cli.stdout)
+    assert cli.returncode == 0 and outcome["outcome"] == "done", cli
+    return outcome
+
+
+def offset_error(sim: Sim, statuses: list[dict], i: int, offset: dict) -> dict | None:
+    """How far vehicle i's accepted offset of the other vehicle is from the simulation's truth."""
+    if not offset["accepted"]:
+        return None
+    t_true = sim.relative_transform(i, 1 - i, statuses[i]["link"]["map_origin_fc_enu"],
+                                    statuses[1 - i]["link"]["map_origin_fc_enu"])
+    err = np.linalg.norm(np.array(offset["translation_m"]) - t_true[:3, 3])
+    yaw_err = abs((offset["yaw_deg"] - np.degrees(np.arctan2(t_true[1, 0], t_true[0, 0])) + 180) % 360 - 180)
+    return {"m": round(float(err), 3), "yaw_deg": round(float(yaw_err), 2)}
+
+
 def test_two_daemons_share_their_maps():
     wd = workdir("coopd-share-")
     mav_port, share_port = port_block(1)
@@ -193,29 +218,34 @@ def test_two_daemons_share_their_maps():
             assert peer["address"].startswith("127.0.0.1")
             assert statuses[i]["memory"]["entries"].get(f"received:{other}", 0) > 0 or wait_until(
                 lambda d=d, other=other: d.status()["memory"]["entries"].get(f"received:{other}"), 3)
-            cli = subprocess.run([PYTHON, "-m", "coopd.cli.coopctl", "merge-now", "--json", "--socket",
-                                  d.socket], capture_output=True, text=True, env=env(), cwd=ROOT, timeout=130)
-            outcome = json.loads(cli.stdout)
-            assert cli.returncode == 0 and outcome["outcome"] == "done", cli
+            # A fit newly found by a search is provisional: held out of the global map and not published
+            # until a recheck on grown maps finds it again. Early in the flight the two maps share little
+            # and a look-alike room can validate (a fit 16 m and 90 degrees off, held, then replaced by
+            # the right one): merge again while the fit is provisional, bounded by CONFIRM_S.
+            deadline, rounds = time.monotonic() + CONFIRM_S, []
+            while True:
+                outcome = merge_now(d)
+                offset = d.status()["merges"]["offsets"][str(other)]
+                assert set(offset) >= {"accepted", "score", "reason", "translation_m", "yaw_deg", "transform"}
+                assert (offset["reason"] == "accepted") == offset["accepted"]
+                rounds.append({k: offset[k] for k in ("accepted", "provisional", "method", "reason")}
+                              | {"error_vs_truth": offset_error(sim, statuses, i, offset)})
+                if (offset["accepted"] and not offset["provisional"]) or time.monotonic() > deadline:
+                    break
+                time.sleep(2.0)
+            report[f"vehicle {i + 1}"] = {"merge": outcome, f"offset of vehicle {other}": offset,
+                                          "rounds": rounds}
+            assert offset["accepted"] and not offset["provisional"], report
+            # a confirmed fit is fused and published: it must be the true one
+            error = rounds[-1]["error_vs_truth"]
+            assert error["m"] < 0.3 and error["yaw_deg"] < 2.0, report
             merges = d.status()["merges"]
-            offset = merges["offsets"][str(other)]
-            report[f"vehicle {i + 1}"] = {"merge": outcome, f"offset of vehicle {other}": offset}
-            assert set(offset) >= {"accepted", "score", "reason", "translation_m", "yaw_deg", "transform"}
-            assert (offset["reason"] == "accepted") == offset["accepted"]
-            if offset["accepted"]:  # how right merge_all was is merging's business: reported, not asserted
-                t_true = sim.relative_transform(i, 1 - i, statuses[i]["link"]["map_origin_fc_enu"],
-                                                statuses[1 - i]["link"]["map_origin_fc_enu"])
-                err = np.linalg.norm(np.array(offset["translation_m"]) - t_true[:3, 3])
-                yaw_err = abs((offset["yaw_deg"] - np.degrees(np.arctan2(t_true[1, 0], t_true[0, 0])) + 180)
-                              % 360 - 180)
-                report[f"vehicle {i + 1}"]["offset_error_vs_truth"] = {"m": round(float(err), 3),
-                                                                       "yaw_deg": round(float(yaw_err), 2)}
-                assert merges["global_version"] >= 1
-                assert merges["full_registrations"] + merges["hinted"] >= 1 and merges["cpu_s"] > 0
-                # distributed merging: our validated transform reaches the peer as a merge result
-                peer, vid = daemons[1 - i], str(i + 1)
-                assert wait_until(lambda p=peer, v=vid: v in p.status()["sharing"]["received_results"], 15,
-                                  poll=0.5), peer.status()["sharing"]
+            assert merges["global_version"] >= 1
+            assert merges["full_registrations"] + merges["hinted"] >= 1 and merges["cpu_s"] > 0
+            # distributed merging: our validated transform reaches the peer as a merge result
+            peer, vid = daemons[1 - i], str(i + 1)
+            assert wait_until(lambda p=peer, v=vid: v in p.status()["sharing"]["received_results"], 15,
+                              poll=0.5), (report, peer.status()["sharing"])
         print(json.dumps(report))
         # received maps are checkpointed on stop and restored on start
         rc, _ = daemons[0].terminate()
