@@ -366,9 +366,10 @@ class VehicleLink:
                     mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, self.system_status
                 )
             )
-        for severity, text in self.statustexts.take():
-            self.mav.send(self.mav.statustext_encode(severity, text))
-            self.counters["statustext_sent"] += 1
+        if self.state == "ok":  # else they wait (bounded queue) for the FC: sent to nobody they are lost
+            for severity, text in self.statustexts.take():
+                self.mav.send(self.mav.statustext_encode(severity, text))
+                self.counters["statustext_sent"] += 1
         if self.target_system == 0 or self.state != "ok":
             with self._lock:
                 self._obstacles = None  # computed for a pose the FC may no longer hold: never late

@@ -2,6 +2,7 @@
 arriving at a loopback FC as MAVLink with their severities."""
 
 import socket
+import time
 
 import pytest
 from pymavlink.dialects.v20 import common as mav
@@ -67,3 +68,25 @@ def test_statustext_and_system_status_reach_the_fc():
     finally:
         link.stop()
         fc.close()
+
+
+def test_texts_pushed_before_the_fc_is_heard_wait_for_it():
+    """An event before the FC spoke (camera frames before the first odometry) is not sent to nobody:
+    it waits in the bounded queue and reaches the FC once the link is up."""
+    port = free_port()
+    link = VehicleLink(LinkConfig(connection=f"udpin:127.0.0.1:{port}", source_system=1, target_system=1,
+                                  heartbeat_period_s=0.2))
+    link.start()
+    fc = None
+    try:
+        assert link.statustext(mav.MAV_SEVERITY_NOTICE, "coopd: camera frames ok")
+        time.sleep(0.3)  # the link thread runs its timers meanwhile, with nobody to send to
+        assert link.status()["counters"].get("statustext_sent", 0) == 0
+        fc = LoopbackFc(UdpChannel(socket.AF_INET, send_to=("127.0.0.1", port)), system_id=1)
+        texts = lambda: [m for m in fc.messages("STATUSTEXT") if m.get_srcSystem() == 1]  # noqa: E731
+        assert fc.run_until(lambda: texts(), seconds=5.0)
+        assert [m.text for m in texts()] == ["coopd: camera frames ok"]
+    finally:
+        link.stop()
+        if fc is not None:
+            fc.close()
