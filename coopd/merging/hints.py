@@ -117,8 +117,9 @@ def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_re
     """Hints per input map (vehicle ids `vids`, in merge order) from our own last accepted transforms
     (`own`: vehicle id -> transform into our frame) and peers' results (objects with vehicle_id and
     edges of a, b, transform carrying b's frame into a's, as wire.MergeResultMessage). held: the map
-    version we hold per vehicle id; a chained hint whose edge names exactly those versions of both
-    its maps is vouched.
+    version we hold per vehicle id (ours included); a hint whose edge names exactly those versions of
+    both its maps is vouched, direct or chained: the peer refined and validated it on the very maps
+    we hold.
 
     A peer vouches only for merges into its own frame (edges with a == its vehicle id). Its edge
     a->b gives b a hint directly when a is us, and the inverse to a when b is us; otherwise the
@@ -143,7 +144,7 @@ def hints_for(own_vid: int, vids: list[int], own: dict[int, np.ndarray], peer_re
                     continue
                 rel = rel if rel is not None else invert(t)
                 if other == own_vid:
-                    out[index[target]].append(Hint(rel, "peer"))
+                    out[index[target]].append(Hint(rel, "peer", vouched=vouched))
                 elif other in index:
                     chained.append((index[target], Hint(rel, "peer", via=index[other], vouched=vouched)))
     for i, h in chained:

@@ -166,6 +166,16 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
             prepared_others[i] = prepare(comparable(others[i], reference.resolution), params, tm, lazy=True)
         return prepared_others[i]
 
+    reference_alone: list = [None]
+
+    def reference_prepared(tm: dict):
+        """The reference map alone, prepared: the world's preparation while nothing is fused yet."""
+        if world.generation == 0:
+            return world.prepared(tm)
+        if reference_alone[0] is None:
+            reference_alone[0] = prepare(reference, params, tm, lazy=True)
+        return reference_alone[0]
+
     def finish(i: int, r: MergeResult, tm: dict, t0: float) -> None:
         if r.accepted:
             if hold is None or not hold(i, r):
@@ -188,6 +198,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         t = resolve(first, merged)
         if any(distinct(resolve(hints[i][k], merged), t) for k in live):
             return None
+        if first.via is None:  # a direct edge: checked on our own map, as the peer found it
+            return check_vouched(reference_prepared(tm), prepared(i, tm), first, np.eye(4), params)
         return check_vouched(prepared(first.via, tm), prepared(i, tm), first, merged[first.via], params)
 
     def run_hints(todo: list[int]) -> None:

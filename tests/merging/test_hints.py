@@ -111,6 +111,23 @@ def test_a_vouched_chain_is_checked_not_refined_and_a_wrong_one_is_refined_and_r
     assert res.results[0].method == "full" and _close(res.results[0].transform, _truth(chain, 0, 2))
 
 
+@pytest.mark.slow
+@pytest.mark.cpu_bound
+def test_a_vouched_direct_edge_is_checked_on_the_reference_and_a_wrong_one_is_refused(chain):
+    """A peer's edge to us found on the versions we hold is checked against our own map, not refined:
+    accepted at the edge itself. Turned by 180 degrees it fails the check, is refined and refused,
+    and the full search places the map."""
+    t01 = _truth(chain, 0, 1)
+    res = merge_all(chain[0].grid, [chain[1].grid], hints=[[Hint(t01, "peer", vouched=True)]])
+    r = res.results[0]
+    assert res.vouched == 1 and res.full_registrations == 0
+    assert r.accepted and r.method == "hint:peer" and r.inliers == 0 and np.allclose(r.transform, t01)
+    wrong = t01 @ rigid(rotation_z(np.pi), [0.0, 0.0, 0.0])
+    res = merge_all(chain[0].grid, [chain[1].grid], hints=[[Hint(wrong, "peer", vouched=True)]])
+    assert res.vouched == 0 and res.hints_refused[0] == 1 and res.full_registrations == 1
+    assert res.results[0].method == "full" and _close(res.results[0].transform, t01)
+
+
 def _msg(vid, *edges, versions=(0, 0)):
     va, vb = versions
     edge = [SimpleNamespace(a=a, b=b, transform=t, version_a=va, version_b=vb) for a, b, t in edges]
@@ -122,8 +139,8 @@ def test_hints_for_vouches_for_a_chained_edge_only_on_the_versions_we_hold():
     held = {9: 70, 2: 20, 3: 30}
     peers = [_msg(2, (2, 9, t), versions=(20, 70)), _msg(2, (2, 3, t), versions=(20, 30))]
     hints = hints_for(9, [2, 3], {}, peers, held)
-    # the link to the peer is validated here; the peer's edge to 3 also vouches for 2 via 3
-    assert [(h.via, h.vouched) for h in hints[0]] == [(None, False), (1, True)]
+    # the peer's direct edge to us and its edge to 3 (which also vouches for 2 via 3)
+    assert [(h.via, h.vouched) for h in hints[0]] == [(None, True), (1, True)]
     assert [(h.via, h.vouched) for h in hints[1]] == [(0, True)]
     for stale in ((20, 29), (19, 30)):  # a map changed since the peer merged it
         hints = hints_for(9, [2, 3], {}, [_msg(2, (2, 3, t), versions=stale)], held)
