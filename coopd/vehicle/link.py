@@ -23,6 +23,10 @@ from .transport import Transport, make_transport
 log = logging.getLogger("coopd.vehicle")
 
 READ_TIMEOUT_S = 0.02
+IDLE_READ_TIMEOUT_S = 0.2
+"""The read's wait while no FC is heard (before the first bytes, or after the link was lost): nothing
+is due sooner than the heartbeat, and the FC's first bytes end the wait anyway. Polling at
+READ_TIMEOUT_S then cost 0.7 % of a core per idle daemon (30 of them on 2 cores: a fifth of one)."""
 MAX_MESSAGES_PER_READ = 512
 FC_REBOOT_BACKSTEP_S = 1.0
 FALLBACK_AFTER_S = 1.0
@@ -177,7 +181,7 @@ class VehicleLink:
                 self._stop.wait(min(READ_TIMEOUT_S * 5, max(0.0, self._next_open - now)))
                 self._update_state(time.monotonic())
                 return
-        data = self.transport.read(READ_TIMEOUT_S)
+        data = self.transport.read(READ_TIMEOUT_S if self.state == "ok" else IDLE_READ_TIMEOUT_S)
         if data:
             self._ingest(data, time.monotonic())
         now = time.monotonic()

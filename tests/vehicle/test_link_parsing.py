@@ -10,6 +10,7 @@ from pymavlink.dialects.v20 import common as mav
 from sim_helpers import wait_until
 
 from coopd.vehicle import LinkConfig, VehicleLink
+from coopd.vehicle.link import IDLE_READ_TIMEOUT_S, READ_TIMEOUT_S
 from coopd.vehicle.transport import Endpoint, Transport
 
 FC = mav.MAVLink(None, 7, 1)
@@ -49,10 +50,12 @@ class Recorder(Transport):
     def __init__(self):
         super().__init__(Endpoint("udpin", "127.0.0.1", 1))
         self.sent = []
+        self.timeouts = []
 
     is_open = True
 
     def read(self, timeout):
+        self.timeouts.append(timeout)
         return b""
 
     def write(self, data):
@@ -73,6 +76,19 @@ def test_a_truncated_datagram_does_not_swallow_the_next():
     assert link.target_system == 7 and link.counters["rx_partial_discarded"] == 1
     link._ingest(odometry(1.0, 2.0) + odometry(1.02, 2.1), now)  # two packets in one datagram
     assert len(link.poses) == 2 and np.allclose(link.poses.latest().position, [0, 0.1, 0])
+
+
+def test_the_link_waits_long_on_reads_while_no_fc_is_heard():
+    """No FC yet (or lost): the loop waits IDLE_READ_TIMEOUT_S per read instead of polling at
+    READ_TIMEOUT_S; once the FC is heard, short reads keep the timers and replies prompt."""
+    rec = Recorder()
+    link = VehicleLink(LinkConfig(connection="udpin:127.0.0.1:1"), transport=rec)
+    link.step(time.monotonic())
+    assert link.state != "ok" and rec.timeouts == [IDLE_READ_TIMEOUT_S]
+    link._ingest(heartbeat(), time.monotonic())
+    link._update_state(time.monotonic())
+    link.step(time.monotonic())
+    assert link.state == "ok" and rec.timeouts[-1] == READ_TIMEOUT_S < IDLE_READ_TIMEOUT_S
 
 
 def test_only_the_locked_system_is_followed():
