@@ -6,6 +6,8 @@ read (per-vehicle records, the trigger's clock) is owned by coopd.daemon.merge_s
 thread (coopd.daemon.merger) applies the rules to it. Nothing here locks, sleeps or logs.
 """
 
+from collections.abc import Iterable
+
 import numpy as np
 
 from coopd.geometry import rotation_angle_deg
@@ -130,11 +132,15 @@ def held_provisional(method: str, new_fit: bool, was_provisional: bool, settled:
     return not (settled or due)
 
 
-def waits_for_peer(own_id: int, vids: list[int], distributed: bool, defer_full_s: float) -> bool:
+def waits_for_peer(own_id: int, vids: list[int], distributed: bool, defer_full_s: float,
+                   alive: Iterable[int] = ()) -> bool:
     """Whether full searches may wait for a peer at all: distributed, a wait set, and a lower vehicle
-    id than ours holds maps too (it searches, we validate its result: the swarm's merge work drops
-    from N(N-1) full searches towards N-1)."""
-    return distributed and defer_full_s > 0 and bool(vids) and min(vids) <= own_id
+    id than ours in the swarm, among the maps we hold (vids) or the peers known alive whose map has
+    not come yet (it searches, we validate its result: the swarm's merge work drops from N(N-1) full
+    searches towards N-1). Counting only the maps held, a drone that had received a few maps of
+    higher ids first searched them itself, and its partial results made every other drone merge
+    again."""
+    return distributed and defer_full_s > 0 and bool(vids) and min([*vids, *alive]) < own_id
 
 
 def defers_search(merged_before: bool, has_hints: bool, waited_s: float, defer_full_s: float) -> bool:

@@ -109,6 +109,9 @@ class MergeSources:
     awaited_maps: Callable[[], int] | None = None
     """How many peers known alive have not sent their map yet (a first merge waits for them, within
     merge_rules.NEW_MAPS_WAIT gaps); None: none is ever awaited."""
+    peers_alive: Callable[[], frozenset[int]] | None = None
+    """Vehicle ids of the peers known alive (a lower one than ours searches: we wait for its result);
+    None: only the maps held count."""
     published_version: Callable[[int], int] | None = None
     """The version peers hold of our local map at a given version counter (the version our edges
     name, so a peer can tell it merged the very maps we did); None: the counter itself."""
@@ -271,12 +274,13 @@ class FitBook:
 
     # ------------------------------------------------------------------------- before a merge
     def deferred(self, own_id: int, vids: list[int], hints: list[list], settings: MergerSettings,
-                 now: float) -> frozenset[int]:
+                 now: float, alive: frozenset[int] = frozenset()) -> frozenset[int]:
         """Positions of the input maps whose full search waits for a peer (merge_all hints_only);
-        remembers when each map first waited, and whether any does (deferring)."""
+        remembers when each map first waited, and whether any does (deferring). alive: peers known
+        alive whose map has not come yet (MergeSources.peers_alive)."""
         out = set()
         until = []
-        if rules.waits_for_peer(own_id, vids, settings.distributed, settings.defer_full_s):
+        if rules.waits_for_peer(own_id, vids, settings.distributed, settings.defer_full_s, alive):
             for k, vid in enumerate(vids):
                 p = self.pair(vid)
                 if p.first_seen is None:

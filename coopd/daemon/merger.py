@@ -303,7 +303,8 @@ class Merger:
                 shared_version = self._shared_version(local_version)
                 versions = {m.vehicle_id: m.version for m, _ in infos} | {self.vehicle_id: shared_version}
                 hints = self._hints(vids, versions)
-                hints_only = self.book.deferred(self.vehicle_id, vids, hints, s, time.monotonic())
+                alive = frozenset() if self.sources.peers_alive is None else self.sources.peers_alive()
+                hints_only = self.book.deferred(self.vehicle_id, vids, hints, s, time.monotonic(), alive)
                 local_known = local_grid.counts().known
                 sizes = [local_known + g.counts().known for g in others]
                 contest = self.book.to_contest(vids, hints, sizes, s.recheck_growth)

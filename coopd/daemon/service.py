@@ -319,6 +319,7 @@ class Daemon:
                 publish_results=self._publish_results,
                 published_version=lambda v: map_versions.compose(self.epoch, v),
                 awaited_maps=None if self.sharing is None else self.sharing.awaited_maps,
+                peers_alive=None if self.sharing is None else self.sharing.vehicles_alive,
             ),
             self.budget,
             merge_fn=self.merge_fn,

@@ -297,19 +297,25 @@ class SharingService:
         s = self.config.transport
         return wire.decode_map(stored.data, wire.DecodeLimits(max_cells=s.max_cells, max_bytes=s.max_bytes))
 
-    def awaited_maps(self) -> int:
-        """Maps still coming, which a first merge may wait for: peers alive (seen within two scan
-        periods over MTP, a liveliness token over Zenoh) whose map we do not hold, and over MTP the
-        peers that answered but are not named yet (a handshake under way, or one that failed within
-        two scan periods: on a loaded host handshakes time out and are retried)."""
-        window = 2 * self.config.scan_period
-        alive = set(self.peers.alive(window))
+    def vehicles_alive(self) -> frozenset[int]:
+        """Other vehicles known alive: seen within two scan periods over MTP, or holding a liveliness
+        token over Zenoh (only allowed vehicles, when the swarm is restricted)."""
+        alive = set(self.peers.alive(2 * self.config.scan_period))
         if self.zenoh is not None:
             alive |= self.zenoh.vehicles_alive()
         allowed = self.config.allowed_vehicles
         if allowed:
             alive &= set(allowed)
         alive.discard(self.vehicle_id)
+        return frozenset(alive)
+
+    def awaited_maps(self) -> int:
+        """Maps still coming, which a first merge may wait for: peers alive (seen within two scan
+        periods over MTP, a liveliness token over Zenoh) whose map we do not hold, and over MTP the
+        peers that answered but are not named yet (a handshake under way, or one that failed within
+        two scan periods: on a loaded host handshakes time out and are retried)."""
+        window = 2 * self.config.scan_period
+        alive = self.vehicles_alive()
         now = time.monotonic()
         with self._lock:
             unnamed = {s.target for s in self._all_senders if s.vid is None}

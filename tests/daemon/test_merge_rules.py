@@ -131,6 +131,10 @@ def test_full_searches_wait_for_a_lower_vehicle_id_for_a_bounded_time():
     assert not rules.waits_for_peer(5, [1, 2], distributed=False, defer_full_s=30.0)
     assert not rules.waits_for_peer(5, [1, 2], distributed=True, defer_full_s=0.0)
     assert not rules.waits_for_peer(5, [], distributed=True, defer_full_s=30.0)
+    # a lower id alive whose map has not come yet searches too: only maps of higher ids held, we wait
+    assert rules.waits_for_peer(5, [7, 9], distributed=True, defer_full_s=30.0, alive=[2, 8])
+    assert not rules.waits_for_peer(5, [7], distributed=True, defer_full_s=30.0, alive=[6, 8])
+    assert not rules.waits_for_peer(5, [], distributed=True, defer_full_s=30.0, alive=[1])  # nothing to defer
     assert rules.defers_search(False, False, 10.0, 30.0)
     assert not rules.defers_search(True, False, 10.0, 30.0)  # merged here before: its own hint serves
     assert not rules.defers_search(False, True, 10.0, 30.0)  # a hint to validate instead

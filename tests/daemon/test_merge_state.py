@@ -118,6 +118,9 @@ def test_a_full_search_waits_for_a_peer_only_until_defer_full_s_after_the_map_wa
     assert book.deferred(5, three, no_hints, settings, now=131.0) == frozenset({2})  # 1 and 2 waited 31 s
     assert book.deferred(5, three, no_hints, settings, now=200.0) == frozenset() and not book.deferring
     assert book.deferred(1, [2, 3], [[], []], settings, now=100.0) == frozenset()  # the lowest id
+    # holding only a higher id's map, with a lower id alive: that one searches, we wait
+    assert book.deferred(4, [18], [[]], settings, now=100.0, alive=frozenset({1, 18})) == frozenset({0})
+    assert book.deferred(4, [18], [[]], settings, now=100.0, alive=frozenset({18, 20})) == frozenset()
 
 
 # ---------------------------------------------------------------------------- trigger and slot

@@ -42,14 +42,14 @@ def _result_message(vid, *edges):
 
 
 def _merger(chain, peer_results=(), distributed=True, published=None, vehicle_id=0, defer_full_s=0.0,
-            published_version=None):
+            published_version=None, peers_alive=None):
     received = [_stored(1, chain[1].grid), _stored(2, chain[2].grid)]
     budget = MemoryBudget(256 << 20, baseline_bytes=0)
     settings = MergerSettings(period_s=3600, distributed=distributed, defer_full_s=defer_full_s)
     sources = MergeSources(lambda: (chain[0].grid.copy(), 4), lambda: received,
                            peer_results=lambda: list(peer_results),
                            publish_results=None if published is None else published.append,
-                           published_version=published_version)
+                           published_version=published_version, peers_alive=peers_alive)
     return Merger(vehicle_id, settings, sources, budget, merge_fn=merge_all)
 
 
@@ -202,3 +202,26 @@ def test_command_line_switches_distributed_merging_off():
 
     assert build_config(parse_args(["--no-config"])).merging.distributed is True
     assert build_config(parse_args(["--no-config", "--no-distributed"])).merging.distributed is False
+
+
+@pytest.mark.slow
+@pytest.mark.cpu_bound
+def test_a_lower_id_alive_whose_map_has_not_come_takes_the_search(chain):
+    """Vehicle 3 holds only maps of higher ids (4 and 5) while vehicle 2 is alive, its map not come
+    yet: vehicle 2 searches them, so vehicle 3 waits for its result instead of searching itself.
+    With no lower id alive, vehicle 3 is the lowest and searches."""
+    received = [_stored(4, chain[1].grid), _stored(5, chain[2].grid)]
+    settings = MergerSettings(period_s=3600, distributed=True, defer_full_s=3600)
+
+    def merger(alive: frozenset[int]) -> Merger:
+        sources = MergeSources(lambda: (chain[0].grid.copy(), 4), lambda: received,
+                               peer_results=lambda: [], peers_alive=lambda: alive)
+        return Merger(3, settings, sources, MemoryBudget(256 << 20, baseline_bytes=0), merge_fn=merge_all)
+
+    m = merger(frozenset({2, 4}))
+    assert m.merge_once()["outcome"] == "done"
+    assert m.counters["full_registrations"] == 0
+    assert all(not o["accepted"] and o["reason"].startswith("deferred") for o in m.offsets.values())
+    m = merger(frozenset({4, 6}))
+    assert m.merge_once()["outcome"] == "done"
+    assert m.counters["full_registrations"] == 2

@@ -69,6 +69,7 @@ def test_a_peer_met_whose_map_has_not_come_is_awaited_until_it_does(services):
     a.publish(tm.make(1, 1, b"a" * 100), 1)
     assert wait_until(lambda: b.received.version(1) == 1)  # a met b (hello): b's map is awaited
     assert a.awaited_maps() == 1 and b.awaited_maps() == 0
+    assert a.vehicles_alive() == {2} and b.vehicles_alive() == {1}  # alive, with or without its map
     b.publish(tm.make(2, 1, b"b" * 100), 1)
     assert wait_until(lambda: a.received.version(2) == 1) and a.awaited_maps() == 0
 
