@@ -679,7 +679,8 @@ class _Sender:
                         svc.peers.failure("version_refused" if status == mtp.ACK_VERSION else
                                           "rejected_by_peer", self.vid)
                     own_map = origin == svc.vehicle_id and kind in ("map", "delta")
-                    if own_map and status in (mtp.ACK_STALE, mtp.ACK_VERSION):
+                    if own_map and status in (mtp.ACK_STALE, mtp.ACK_VERSION) \
+                            and not self._relayed_copy(version, status):
                         svc._own_refused(self.vid, version, status)
             svc.peers.wire_sent(self.vid, self.link.wire_bytes_sent - self._wire_counted)
             self._wire_counted = self.link.wire_bytes_sent
@@ -690,6 +691,12 @@ class _Sender:
                 log.info("peer vehicle %d closed the connection", self.vid)
                 return
             svc.peers.seen(self.vid)
+
+    def _relayed_copy(self, version: int, status: int) -> bool:
+        """Whether a peer that answered ACK_STALE to our own map holds exactly that version: our map
+        relayed to it by another peer first, not a newer one we never sent (which pins our versions and
+        needs a new epoch). An offer of the next version tells them apart: OK means it holds no newer."""
+        return status == mtp.ACK_STALE and self.link.offer(self.service.vehicle_id, version + 1) == mtp.ACK_OK
 
     def _send(self, origin: int, version: int, message: bytes, kind: str) -> tuple[bytes, str, int, float]:
         """Send one pending message; our own map as a delta when the peer reads them and the ledger has

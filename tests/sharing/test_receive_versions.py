@@ -107,3 +107,28 @@ def test_the_real_vehicle_resyncs_after_a_forgery_within_the_bounds():
         for svc in (sender, receiver):
             if svc is not None:
                 svc.stop()
+
+
+def test_our_own_map_relayed_to_a_peer_first_is_not_taken_for_a_forgery():
+    """The receiver already holds vehicle 2's map at the very version vehicle 2 sends (another peer
+    relayed it first): it answers 'stale', and vehicle 2 must not take that for a forged newer version
+    (which would make it publish everything again in a new epoch): the offer of the next version is
+    answered OK."""
+    receiver = service(1)
+    refused = []
+    sender = None
+    try:
+        receiver.start()
+        version = versions.compose(now_epoch() - 60, 7)
+        assert send(receiver, 9, tm.make(2, version, b"real"), source="127.0.0.9") == mtp.ACK_OK  # relayed
+        sender = service(2, "127.0.0.2", peers=["{}:{}".format(*receiver.address)],
+                         on_own_refused=lambda *a: refused.append(a))
+        sender.start()
+        sender.publish(tm.make(2, version, b"real"), version)
+        assert wait_until(lambda: sender.peers.has_version(1, 2) == version, 10)  # it answered 'stale'
+        time.sleep(0.5)
+        assert refused == [] and tm.payload(receiver.received.get(2).data) == b"real"
+    finally:
+        for svc in (sender, receiver):
+            if svc is not None:
+                svc.stop()
