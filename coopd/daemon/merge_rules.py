@@ -135,8 +135,8 @@ def held_provisional(method: str, new_fit: bool, was_provisional: bool, settled:
 def waits_for_peer(own_id: int, vids: list[int], distributed: bool, defer_full_s: float,
                    alive: Iterable[int] = ()) -> bool:
     """Whether full searches may wait for a peer at all: distributed, a wait set, and a lower vehicle
-    id than ours in the swarm, among the maps we hold (vids) or the peers known alive whose map has
-    not come yet (it searches, we validate its result: the swarm's merge work drops from N(N-1) full
+    id than ours in the swarm, among the maps we hold (vids) or the peers known alive, their maps come
+    or not (it searches, we validate its result: the swarm's merge work drops from N(N-1) full
     searches towards N-1). Counting only the maps held, a drone that had received a few maps of
     higher ids first searched them itself, and its partial results made every other drone merge
     again."""

@@ -276,8 +276,8 @@ class FitBook:
     def deferred(self, own_id: int, vids: list[int], hints: list[list], settings: MergerSettings,
                  now: float, alive: frozenset[int] = frozenset()) -> frozenset[int]:
         """Positions of the input maps whose full search waits for a peer (merge_all hints_only);
-        remembers when each map first waited, and whether any does (deferring). alive: peers known
-        alive whose map has not come yet (MergeSources.peers_alive)."""
+        remembers when each map first waited, and whether any does (deferring). alive: the vehicle
+        ids of the peers known alive (MergeSources.peers_alive)."""
         out = set()
         until = []
         if rules.waits_for_peer(own_id, vids, settings.distributed, settings.defer_full_s, alive):
