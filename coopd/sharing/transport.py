@@ -408,9 +408,11 @@ class _Connection:
             cause, detail = "evicted", "idle connection closed to make room for a new one (all slots taken)"
         elif self.keyed and self.hello is not None and not self.reasm.authorized \
                 and cause in (None, "timeout", "cut"):
+            why = (f"its protocol version {self.hello.version} < {mtp.PROOF_VERSION} has no proof"
+                   if self.hello.version < mtp.PROOF_VERSION else
+                   "a wrong key, or it stopped waiting for our hello: a handshake timeout on a loaded host")
             cause, detail = "auth", (f"the peer claiming vehicle {self.hello.vehicle_id} left after its "
-                                     f"hello without proving the swarm key (a wrong key, or protocol "
-                                     f"version {self.hello.version} < {mtp.PROOF_VERSION})")
+                                     f"hello without proving the swarm key ({why})")
         if cause is not None:
             self.server.peers.failure(cause, self.vehicle_id, self.address)
             self.server.drops.warn(self.address, self.vehicle_id, cause, detail)
