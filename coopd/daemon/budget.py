@@ -129,6 +129,11 @@ class MemoryBudget:
             self.peak_reserved = max(self.peak_reserved, total - held + value)
             return True
 
+    def names(self) -> list[str]:
+        """The names holding a reservation now."""
+        with self._lock:
+            return list(self._entries)
+
     def release(self, name: str) -> int:
         """Drop `name`'s reservation; returns the bytes it held."""
         with self._lock:

@@ -257,7 +257,7 @@ class MergingConfig:
     )
     defer_full_s: float = _key(
         "distributed: seconds a map's full search waits for a lower vehicle id's result; 0: never",
-        30.0, _between(0.0, 3600.0, " s"),
+        60.0, _between(0.0, 3600.0, " s"),
     )
     vouched: bool = _key(
         "distributed: a map a peer merged on exactly the map versions we hold is placed by its edge, "

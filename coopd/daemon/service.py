@@ -79,6 +79,8 @@ FRAME_FILE = "map-frame.json"
 daemon continues the same map frame (the first odometry sample after a restart is elsewhere)."""
 MAIN_PERIOD_S = 0.2
 STATUS_PERIOD_S = 5.0
+MEMORY_PERIOD_S = 1.0
+"""The memory ledger and RSS are checked this often (reading RSS is a /proc read)."""
 LOG_PERIOD_S = 60.0
 PUBLISH_PERIOD_S = 1.0
 NEW_EPOCH_MIN_S = 5.0
@@ -354,12 +356,13 @@ class Daemon:
         self._published_version = 0
         self._saved_versions: dict[str, int] = {"local": self.mapper.version}  # a resumed map is on disk
         self._snapshot_cells = 0
+        """Cells of the last known-box snapshot of the local map (what a merge decodes of it)."""
         self._received_restored = False
         """Received maps were restored from their checkpoints: those not held since may be removed."""
-        """Cells of the last known-box snapshot of the local map (what a merge decodes of it)."""
         self._origin_saved = self.link.odometry.origin_enu is not None
         self._next_checkpoint = time.monotonic() + (config.daemon.checkpoint_period_s or float("inf"))
         self._next_status = 0.0
+        self._next_memory = 0.0
         self._next_log = time.monotonic() + LOG_PERIOD_S
 
     # ------------------------------------------------------------------------------ building
@@ -575,7 +578,9 @@ class Daemon:
             self.progress.beat("main")
             self.healthy()  # logs a worker that stopped making progress, also without a watchdog
             self.gcs.update(self.health())
-            self._account_memory()
+            if now >= self._next_memory:
+                self._next_memory = now + MEMORY_PERIOD_S
+                self._account_memory()
             if now >= self._next_checkpoint:
                 self._next_checkpoint = now + self.config.daemon.checkpoint_period_s
                 self.checkpoint()
@@ -809,7 +814,7 @@ class Daemon:
         for m in self._received_maps():
             held.add(f"received:{m.vehicle_id}")
             self.budget.reserve(f"received:{m.vehicle_id}", len(m.data))
-        for name in self.budget.snapshot()["entries"]:
+        for name in self.budget.names():
             if name.startswith("received:") and name not in held:
                 self.budget.release(name)
 
@@ -839,7 +844,7 @@ class Daemon:
         return status_report.build(self)
 
     def handle_peers(self, args: dict) -> dict:
-        return {"peers": status_report.peers(self)}
+        return {"peers": status_report.peers(self, None if self.sharing is None else self.sharing.stats())}
 
     def handle_merge_now(self, args: dict) -> dict:
         return self.merger.merge_now(MERGE_NOW_TIMEOUT_S)

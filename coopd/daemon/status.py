@@ -25,6 +25,7 @@ def build(daemon) -> dict:
     assoc = daemon.associator.status()
     lat = np.array(daemon.latency_s, dtype=np.float64)
     merges = daemon.merger.status()
+    sharing = None if daemon.sharing is None else daemon.sharing.stats()
     return {
         "vehicle_id": daemon.vehicle_id,
         "pid": daemon.pid,
@@ -78,8 +79,8 @@ def build(daemon) -> dict:
             "reconnects": max(0, cam_counters.get("connects", 0) - 1),
             "counters": cam_counters,
         },
-        "peers": peers(daemon),
-        "sharing": None if daemon.sharing is None else _jsonable(daemon.sharing.stats()),
+        "peers": peers(daemon, sharing),
+        "sharing": None if sharing is None else _jsonable(sharing),
         "merges": merges,
         "merging": merges["state"],
         "obstacles": ({"enabled": False, "when_fc_asks": False, "sending": False, "fc": "not asked"}
@@ -129,12 +130,13 @@ def pose(link_obj, link: dict) -> dict | None:
     }
 
 
-def peers(daemon) -> list[dict]:
-    """One entry per peer vehicle, in coopctl's format (with the sharing stats as extras)."""
-    if daemon.sharing is None:
+def peers(daemon, sharing: dict | None) -> list[dict]:
+    """One entry per peer vehicle, in coopctl's format, from the sharing stats (SharingService.stats);
+    where each peer's map sits in ours is in merges.offsets."""
+    if sharing is None:
         return []
     out = []
-    for p in daemon.sharing.stats()["peers"]:
+    for p in sharing["peers"]:
         vid = p["vehicle_id"]
         stored = daemon.sharing.received.get(vid) if vid is not None else None
         out.append(
@@ -150,7 +152,6 @@ def peers(daemon) -> list[dict]:
                 "deltas_sent": p["deltas_sent"],
                 "wire_bytes_sent": p["wire_bytes_sent"],
                 "failures": p["failures"],
-                "offset": daemon.merger.offsets.get(vid),
             }
         )
     return sorted(out, key=lambda p: (p["vehicle_id"] is None, p["vehicle_id"] or 0))

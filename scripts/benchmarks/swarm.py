@@ -10,6 +10,9 @@ shares or merges while the others still start. Until every daemon:
   t_share   holds every other's map (status peers[].map_version),
   t_global  has N-1 accepted merge offsets (status merges.offsets), each checked against the
             flight's truth (translation error < --tol-m, yaw/rotation < --tol-deg; else "wrong").
+The bench asks each daemon for its status twice a second, and stops asking one once it holds every
+map and the global map (asked once more at the end): a status request costs the daemon CPU that
+its merges need, measured at the end as status_request_cpu_ms.
 Also per daemon: merges done/failed/deferred, merge CPU (as the daemon reports it: its merging
 thread and the search threads it starts; the merging thread alone from /proc), process CPU, peak
 RSS, and per merged map its mean displacement (its occupied cells placed by the offset vs by the
@@ -145,6 +148,13 @@ def accepted_offsets(status: dict) -> set[int]:
 def holds_global(status: dict, ids: list[int]) -> bool:
     """True when this daemon's global map holds every other vehicle's map (N-1 accepted offsets)."""
     return set(ids) - {status["vehicle_id"]} <= accepted_offsets(status)
+
+
+def still_waiting(ids: list[int], first_global: dict[int, float], last: dict[int, dict]) -> list[int]:
+    """The daemons the bench still asks for their status: all but those that held the global map
+    (first_global) and hold every map. Each status costs the daemon CPU (status_request_cpu_ms) that
+    the swarm's merges need."""
+    return [v for v in ids if not (v in first_global and holds_all_maps(last[v], ids))]
 
 
 # ------------------------------------------------------------------------------------ the swarm
@@ -307,9 +317,12 @@ def run_size(maps: list, merging: dict, args, label: str, transport: str = "mtp"
         last: dict[int, dict] = {}
         since_merge: dict[int, dict] = {}
         """Each daemon's first status after its last merge done (did it skip unchanged ones since?)."""
+        polls = 0
         while time.monotonic() - t0 < args.timeout:
-            for vid in swarm.ids:
+            waiting = still_waiting(swarm.ids, first_global, last)
+            for vid in waiting:
                 st = swarm.status(vid)
+                polls += 1
                 if st is not None:
                     last[vid] = st
                     if since_merge.get(vid, {}).get("merges", {}).get("done") != st["merges"]["done"]:
@@ -325,16 +338,19 @@ def run_size(maps: list, merging: dict, args, label: str, transport: str = "mtp"
                     t_global = now
             if t_share is not None and t_global is not None:
                 break
-            if len(last) == n and all(gave_up(since_merge[v], last[v], swarm.ids) for v in swarm.ids):
-                row["gave_up_at_s"] = round(now, 2)  # every daemon settled short of the global map
+            if len(last) == n and all(gave_up(since_merge[v], last[v], swarm.ids) for v in waiting):
+                row["gave_up_at_s"] = round(now, 2)  # every daemon short of the global map settled
                 break
             time.sleep(POLL_S)
+        row["status_polls"] = polls
+        last |= {vid: st for vid in swarm.ids if (st := swarm.status(vid)) is not None}
         cpu1 = {vid: swarm.cpu(vid) for vid in swarm.ids}
         row["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
         points = {m.vehicle + 1: occupied_points(m.grid) for m in maps}
         row |= summarise(swarm, last, cpu0, cpu1, truths, args, t_share, t_global, first_global, points)
         if t_global is not None and args.linger > 0:
             row["after_global"] = linger(swarm, last, cpu1, args.linger)
+        row["status_request_cpu_ms"] = status_cost(swarm)
     finally:
         swarm.stop()
         if args.keep:
@@ -359,6 +375,27 @@ def linger(swarm: Swarm, at_global: dict, cpu1: dict, seconds: float) -> dict:
         "merging_thread_cpu_s": round(sum(_delta(cpu2[v]["merging_thread"], cpu1[v]["merging_thread"]) or 0.0
                                           for v in swarm.ids), 2),
     }
+
+
+STATUS_COST_REQUESTS = 40
+
+
+def status_cost(swarm: Swarm, vids=(2, 3)) -> float | None:
+    """CPU milliseconds one `status` request costs a daemon (median of two daemons): its process CPU
+    over STATUS_COST_REQUESTS requests in a row, less its CPU over as long a quiet spell before."""
+    costs = []
+    for vid in vids:
+        if vid not in swarm.ids or swarm.status(vid) is None:
+            continue
+        path = f"/proc/{swarm.procs[vid].pid}/stat"
+        c0, t0 = cpu_s(path), time.monotonic()
+        time.sleep(1.0)
+        quiet = (cpu_s(path) - c0) / (time.monotonic() - t0)
+        c0, t0 = cpu_s(path), time.monotonic()
+        for _ in range(STATUS_COST_REQUESTS):
+            swarm.status(vid)
+        costs.append((cpu_s(path) - c0 - quiet * (time.monotonic() - t0)) / STATUS_COST_REQUESTS)
+    return round(1e3 * float(np.median(costs)), 2) if costs else None
 
 
 def sharing_failures(sharing: dict) -> dict[str, int]:

@@ -9,7 +9,15 @@ from collections import Counter
 
 import pytest
 
-from coopd.daemon.threads import ROLE_NICE, ThreadPriorities, WorkerProgress, read_nice, run_at_rate
+from coopd.daemon.threads import ROLE_NICE, ThreadPriorities, WorkerProgress, run_at_rate
+
+
+def nice_in_proc(tid: int) -> int:
+    """A thread's nice as /proc/self/task/<tid>/stat shows it (field 19): the kernel's view, checked
+    independently of the getpriority call the daemon uses."""
+    with open(f"/proc/self/task/{tid}/stat", "rb") as f:
+        stat = f.read().decode()
+    return int(stat[stat.rindex(")") + 2 :].split()[19 - 3])
 
 
 def run_in_thread(fn):
@@ -18,7 +26,7 @@ def run_in_thread(fn):
     def body():
         out["value"] = fn()
         out["tid"] = threading.get_native_id()
-        out["nice_proc"] = read_nice(out["tid"])
+        out["nice_proc"] = nice_in_proc(out["tid"])
         hold.wait(5)
 
     t = threading.Thread(target=body, name="test-role")
@@ -34,7 +42,7 @@ def test_low_priority_role_is_visible_in_proc():
     try:
         assert out["value"].requested == 10 and out["value"].applied == 10 and out["value"].note == ""
         assert out["nice_proc"] == 10
-        assert read_nice(threading.get_native_id()) != 10  # only that thread changed
+        assert nice_in_proc(threading.get_native_id()) != 10  # only that thread changed
         report = prios.report()
         assert [(r["role"], r["tid"], r["applied"]) for r in report] == [("merging", out["tid"], 10)]
     finally:

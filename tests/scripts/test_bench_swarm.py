@@ -34,6 +34,14 @@ def test_holds_all_maps_needs_every_other_vehicle():
     assert swarm.holds_all_maps(status(2, held=[1, 3, 7]), ids)
 
 
+def test_a_daemon_holding_every_map_and_the_global_map_is_not_polled_again():
+    last = {1: status(1, held=[2, 3], accepted=[2, 3]), 2: status(2, held=[1], accepted=[1, 3]),
+            3: status(3, held=[1, 2], accepted=[1, 2])}
+    # 1: done; 2: the global map once but a map missing; 3: every map, global map not seen yet
+    assert swarm.still_waiting([1, 2, 3], {1: 5.0, 2: 6.0}, last) == [2, 3]
+    assert swarm.still_waiting([1, 2, 3], {}, {}) == [1, 2, 3]
+
+
 def test_holds_global_counts_only_accepted_offsets():
     ids = [1, 2, 3]
     assert swarm.holds_global(status(1, accepted=[2, 3]), ids)
