@@ -37,3 +37,45 @@ def test_fills_the_cache_dir_the_daemon_loads_from(tmp_path):
     # and what its first real merge would compile (the search, refinement and validation)
     assert {"raycast", "planes_kernels", "kernels", "preprocess", "level", "validation"} <= cached, cached
     assert {"yaw_search", "mtm", "refine"} <= cached, cached
+
+
+VALIDATING_MERGE = """
+import sys
+import numpy as np
+from numba.core.registry import CPUDispatcher
+from coopd.daemon.warmup import furnished_room, warm_up_kernels
+from coopd.geometry import rigid, rotation_z
+from coopd.grid import transform_grid
+from coopd.mapping import MapperConfig
+from coopd.merging import merge_all
+from coopd.merging.hints import Hint
+
+
+def signatures():
+    return {f"{m.__name__}.{k}": set(v.signatures) for m in list(sys.modules.values())
+            if getattr(m, "__name__", "").startswith("coopd") for k, v in vars(m).items()
+            if isinstance(v, CPUDispatcher)}
+
+
+warm_up_kernels(MapperConfig(), 2, merge_all)
+room = furnished_room(0.1)
+t1 = rigid(rotation_z(np.radians(90.0)), np.array([0.8, 0.3, 0.0]))
+t2 = rigid(rotation_z(np.radians(-30.0)), np.array([-0.5, 0.2, 0.0]))
+a, b = transform_grid(room, np.linalg.inv(t1)), transform_grid(room, np.linalg.inv(t2))
+before = signatures()
+hints = [[Hint(t1, "peer", vouched=True)], [Hint(np.linalg.inv(t1) @ t2, "peer", via=0, vouched=True)]]
+r = merge_all(room, [a, b], hints=hints)
+after = signatures()
+assert [x.accepted for x in r.results] == [True, True] and r.vouched == 2, r
+print({k: sorted(map(str, after[k] - before.get(k, set()))) for k in after if after[k] - before.get(k, set())})
+"""
+
+
+def test_a_merge_on_a_peers_result_loads_no_kernel_the_start_did_not(tmp_path):
+    """Every drone but one merges by its peers' vouched edges first: the kernels of that merge are
+    loaded before READY=1, not in each daemon's first merge (where loading them took 0.07 s)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-c", VALIDATING_MERGE], capture_output=True, text=True, env=env,
+                       timeout=900)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "{}", r.stdout
