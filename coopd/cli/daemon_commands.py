@@ -27,6 +27,9 @@ def register(subparsers) -> None:
     """Add status, peers, merge-now and dump-map to coopctl."""
     status = subparsers.add_parser("status", help="state of the running daemon")
     add_json_option(status, "print the daemon's status as one JSON object")
+    status.add_argument("--sections", default=None, metavar="NAME,...",
+                        help="only these sections of the status (e.g. peers,merges: a monitor polling many "
+                             "drones); the others print as '-'")
     _socket_args(status)
     status.set_defaults(handler=run_status)
 
@@ -91,7 +94,8 @@ def _call(args, cmd: str, cmd_args: dict | None = None, max_blob_bytes: int = 0)
 
 # ------------------------------------------------------------------------------------------ status
 def run_status(args) -> int:
-    result, _ = _call(args, "status")
+    sections = None if args.sections is None else [n for n in args.sections.split(",") if n]
+    result, _ = _call(args, "status", None if sections is None else {"sections": sections})
     emit(args, result, format_status(result))
     return OK.code
 

@@ -841,7 +841,11 @@ class Daemon:
 
     # ------------------------------------------------------------------------------ commands
     def handle_status(self, args: dict) -> dict:
-        return status_report.build(self)
+        try:
+            sections = status_report.check_sections(args.get("sections"))
+        except ValueError as e:
+            raise CommandFailed(str(e)) from None
+        return status_report.build(self, sections)
 
     def handle_peers(self, args: dict) -> dict:
         return {"peers": status_report.peers(self, None if self.sharing is None else self.sharing.stats())}

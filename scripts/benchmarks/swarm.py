@@ -10,9 +10,10 @@ shares or merges while the others still start. Until every daemon:
   t_share   holds every other's map (status peers[].map_version),
   t_global  has N-1 accepted merge offsets (status merges.offsets), each checked against the
             flight's truth (translation error < --tol-m, yaw/rotation < --tol-deg; else "wrong").
-The bench asks each daemon for its status twice a second, and stops asking one once it holds every
-map and the global map (asked once more at the end): a status request costs the daemon CPU that
-its merges need, measured at the end as status_request_cpu_ms.
+The bench asks each daemon for the peers and merges of its status twice a second, and stops asking
+one once it holds every map and the global map (the whole status is asked once more at the end): a
+status request costs the daemon CPU that its merges need, measured at the end as
+status_request_cpu_ms (whole and as polled).
 Also per daemon: merges done/failed/deferred, merge CPU (as the daemon reports it: its merging
 thread and the search threads it starts; the merging thread alone from /proc), process CPU, peak
 RSS, and per merged map its mean displacement (its occupied cells placed by the offset vs by the
@@ -75,6 +76,8 @@ def host(vid: int, shared_address: bool = False) -> str:
     return "127.0.0.1" if shared_address else f"127.0.0.{HOST_BASE + vid}"
 MERGE_COUNTERS = ("done", "failed", "deferred", "nothing_to_merge", "unchanged")
 POLL_S = 0.5
+POLLED_SECTIONS = ["peers", "merges"]
+"""What the bench reads of a status while it waits (the whole status is asked for at the end)."""
 """Status polls of every daemon: each costs the daemon a little CPU, taken from merging."""
 STATUS_TIMEOUT_S = 10.0
 
@@ -261,9 +264,11 @@ class Swarm:
         for vid in self.ids:
             os.kill(self.procs[vid].pid, signal.SIGCONT)
 
-    def status(self, vid: int) -> dict | None:
+    def status(self, vid: int, sections: list[str] | None = None) -> dict | None:
+        """Daemon vid's status (only `sections` of it, when given), or None if it does not answer."""
+        args = None if sections is None else {"sections": sections}
         try:
-            return request(self.sock(vid), "status", timeout_s=STATUS_TIMEOUT_S)[0]
+            return request(self.sock(vid), "status", args, timeout_s=STATUS_TIMEOUT_S)[0]
         except (ControlError, OSError):
             return None
 
@@ -321,7 +326,7 @@ def run_size(maps: list, merging: dict, args, label: str, transport: str = "mtp"
         while time.monotonic() - t0 < args.timeout:
             waiting = still_waiting(swarm.ids, first_global, last)
             for vid in waiting:
-                st = swarm.status(vid)
+                st = swarm.status(vid, POLLED_SECTIONS)
                 polls += 1
                 if st is not None:
                     last[vid] = st
@@ -380,22 +385,24 @@ def linger(swarm: Swarm, at_global: dict, cpu1: dict, seconds: float) -> dict:
 STATUS_COST_REQUESTS = 40
 
 
-def status_cost(swarm: Swarm, vids=(2, 3)) -> float | None:
-    """CPU milliseconds one `status` request costs a daemon (median of two daemons): its process CPU
-    over STATUS_COST_REQUESTS requests in a row, less its CPU over as long a quiet spell before."""
-    costs = []
+def status_cost(swarm: Swarm, vids=(2, 3)) -> dict[str, float | None]:
+    """CPU milliseconds one `status` request costs a daemon, whole and as the bench polls it (median of
+    two daemons): its process CPU over STATUS_COST_REQUESTS requests in a row, less its CPU over as
+    long a quiet spell before."""
+    costs: dict[str, list[float]] = {"whole": [], "polled": []}
     for vid in vids:
         if vid not in swarm.ids or swarm.status(vid) is None:
             continue
         path = f"/proc/{swarm.procs[vid].pid}/stat"
-        c0, t0 = cpu_s(path), time.monotonic()
-        time.sleep(1.0)
-        quiet = (cpu_s(path) - c0) / (time.monotonic() - t0)
-        c0, t0 = cpu_s(path), time.monotonic()
-        for _ in range(STATUS_COST_REQUESTS):
-            swarm.status(vid)
-        costs.append((cpu_s(path) - c0 - quiet * (time.monotonic() - t0)) / STATUS_COST_REQUESTS)
-    return round(1e3 * float(np.median(costs)), 2) if costs else None
+        for kind, sections in (("whole", None), ("polled", POLLED_SECTIONS)):
+            c0, t0 = cpu_s(path), time.monotonic()
+            time.sleep(1.0)
+            quiet = (cpu_s(path) - c0) / (time.monotonic() - t0)
+            c0, t0 = cpu_s(path), time.monotonic()
+            for _ in range(STATUS_COST_REQUESTS):
+                swarm.status(vid, sections)
+            costs[kind].append((cpu_s(path) - c0 - quiet * (time.monotonic() - t0)) / STATUS_COST_REQUESTS)
+    return {k: round(1e3 * float(np.median(v)), 2) if v else None for k, v in costs.items()}
 
 
 def sharing_failures(sharing: dict) -> dict[str, int]:

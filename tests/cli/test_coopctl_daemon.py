@@ -84,7 +84,8 @@ def _dump(args):
 
 MERGE_OUTCOME = {"outcome": "deferred", "detail": "needs 40 MiB, 12 MiB free in the budget"}
 HANDLERS = {
-    "status": lambda a: STATUS,
+    "status": lambda a: {k: v for k, v in STATUS.items()
+                         if "sections" not in a or k in a["sections"] or k in ("vehicle_id", "state")},
     "peers": lambda a: {"peers": STATUS["peers"]},
     "merge-now": lambda a: MERGE_OUTCOME,
     "dump-map": _dump,
@@ -120,6 +121,14 @@ def test_status_table_and_json(daemon, capsys):
     assert "nice 0 (asked -5: EPERM)" in out and "nice 10\n" in out
     assert main(["status", "--json", "--socket", daemon]) == 0
     assert json.loads(capsys.readouterr().out) == STATUS
+
+
+def test_status_sections_ask_the_daemon_for_part_of_it(daemon, capsys):
+    assert main(["status", "--json", "--sections", "peers,merges", "--socket", daemon]) == 0
+    assert set(json.loads(capsys.readouterr().out)) == {"vehicle_id", "state", "peers", "merges"}
+    assert main(["status", "--sections", "merges", "--socket", daemon]) == 0
+    out = capsys.readouterr().out
+    assert "10 done, 1 failed, 2 deferred" in out and "\nmap          -\n" in out, out
 
 
 def test_status_socket_from_environment(daemon, capsys, monkeypatch):

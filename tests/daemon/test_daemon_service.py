@@ -118,6 +118,11 @@ def test_commands_without_a_vehicle(wd, merging):
         assert set(roles) >= {"mavlink", "camera", "mapping", "merging", "control"}
         assert roles["merging"]["applied"] == 10
         assert control.request(d.config.daemon.control_socket, "peers")[0] == {"peers": []}
+        part, _ = control.request(d.config.daemon.control_socket, "status", {"sections": ["merges", "peers"]})
+        assert set(part) == {"vehicle_id", "pid", "state", "uptime_s", "merges", "peers"}, part
+        assert part["merges"]["state"] == status["merges"]["state"] and part["peers"] == []
+        with pytest.raises(control.ControlError, match=r"unknown status sections \['offsets'\]"):
+            control.request(d.config.daemon.control_socket, "status", {"sections": ["merges", "offsets"]})
         merge, _ = control.request(d.config.daemon.control_socket, "merge-now")
         result, blob = control.request(d.config.daemon.control_socket, "dump-map", {"map": "global"},
                                        max_blob_bytes=1 << 20)
