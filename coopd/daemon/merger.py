@@ -228,11 +228,15 @@ class Merger:
                     not_before = gap_until  # the maps still change: merge after the usual gap
                     self.request("confirm")
                 else:
-                    if self.merge_once(",".join(sorted(set(reasons))))["outcome"] == "done":
+                    last = self.merge_once(",".join(sorted(set(reasons))))
+                    if last["outcome"] == "done":
                         self._merged_inputs = rules.inputs_to_remember(inputs, self.book.left_out)
                     gap_until = time.monotonic() + self.settings.min_gap_s
                     not_before = gap_until
-                    if self.book.holding:  # look again once settled: confirm them, or merge the grown maps
+                    if self.book.holding and rules.settled_during(last["seconds"], self.settings.settle_s,
+                                                                  inputs, self.inputs()):
+                        self.request("confirm", urgent=True)  # no map changed during a long merge
+                    elif self.book.holding:  # look again once settled: confirm them, or merge the grown maps
                         not_before = time.monotonic() + min(self.settings.settle_s, self.settings.min_gap_s)
                         self.request("confirm")
             self.trigger.complete(ticket)

@@ -73,6 +73,14 @@ def test_a_look_at_held_fits_before_the_gap_merges_only_to_confirm_them():
     assert not rules.confirm_too_early(False, False, grown, held, now=1.0, gap_until=5.0)  # nothing held
 
 
+def test_the_maps_settled_during_a_merge_as_long_as_settle_s_on_unchanged_inputs():
+    same = (1, ((2, 5),), ())
+    assert rules.settled_during(3.0, 2.0, same, same)
+    assert not rules.settled_during(1.0, 2.0, same, same)  # too short to tell
+    assert not rules.settled_during(3.0, 2.0, same, (1, ((2, 6),), ()))  # a map changed meanwhile
+    assert not rules.settled_during(3.0, 2.0, None, None)
+
+
 def test_held_fits_are_confirmed_without_a_search_only_on_the_inputs_that_held_them():
     inputs = (3, ((2, 1),), ())
     assert rules.confirms_without_search(True, True, inputs, inputs)

@@ -152,3 +152,41 @@ def test_held_fits_are_confirmed_one_settling_period_later_unless_the_maps_chang
             assert m.counters["done"] == 1 and m.status()["provisional"] == [2]
         else:
             assert m.counters["done"] == 2 and m.status()["provisional"] == [] and calls == [("full", True)]
+
+
+def test_fits_held_by_a_merge_longer_than_settle_s_on_unchanged_maps_are_confirmed_at_once(flip):
+    """The maps settled during the merge itself (no input changed while it ran for longer than
+    settle_s): its fits are confirmed right after it, not one settling period later; a map that
+    changed during the merge leaves them held."""
+    maps, truth, _ = flip
+    for changes in (False, True):
+        calls, done_at = [], []
+        feed = Feed(maps)
+        fake = _same_fit_fake(truth, calls)
+
+        def slow(*a, **kw):
+            time.sleep(0.6)  # a long search: longer than settle_s
+            if changes:
+                feed.version += 1  # our map grew while it ran
+            return fake(*a, **kw)
+
+        m = _merger(feed, slow, confirm_before_fusing=True, min_gap_s=3600, settle_s=0.5,
+                    sources={"local_version": lambda f=feed: f.version})
+        merge_once = m.merge_once
+        m.merge_once = lambda reason="request": done_at.append(time.monotonic()) or merge_once(reason)
+        t = threading.Thread(target=m.run, daemon=True)
+        t.start()
+        try:
+            m.request("start")
+            deadline = time.monotonic() + 10
+            while len(done_at) < 2 and time.monotonic() < deadline:
+                time.sleep(0.005)
+            time.sleep(0.7)
+        finally:
+            m.stop()
+            t.join(5)
+        if changes:
+            assert m.counters["done"] == 1 and m.status()["provisional"] == [2] and len(done_at) == 1
+        else:
+            assert m.counters["done"] == 2 and m.status()["provisional"] == [] and calls == [("full", True)]
+            assert done_at[1] - done_at[0] < 0.6 + 0.3, done_at  # the 0.6 s merge, then at once
