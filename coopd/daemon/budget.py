@@ -93,7 +93,7 @@ class MemoryBudget:
         if nbytes < 0:
             raise ValueError(f"negative reservation for {name}")
         with self._lock:
-            others = sum(v for k, v in self._entries.items() if k != name)
+            others = sum(self._entries.values()) - self._entries.get(name, 0)
             if others + nbytes > self.grid_budget:
                 self.refused += 1
                 available = max(0, self.grid_budget - others)
