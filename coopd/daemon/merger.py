@@ -38,6 +38,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -98,6 +99,21 @@ def in_global_map(entry: dict) -> bool:
     """Whether a status merges.offsets entry's map is fused into the global map: accepted, and not
     provisional (held out until confirmed)."""
     return bool(entry.get("accepted")) and not entry.get("provisional")
+
+
+@dataclass(frozen=True)
+class _Waiting:
+    """The result of a map whose full search waits for a peer, as merge_all reports it (its fields
+    that offset_entry, FitBook.record and the merge counters read)."""
+
+    accepted: bool = False
+    transform: np.ndarray = field(default_factory=lambda: np.eye(4))
+    score: float = 0.0
+    reason: str = "deferred: full search left to a peer's merge result"
+    method: str = "deferred"
+
+
+WAITING = _Waiting()
 
 
 def offset_summary(transform) -> dict:
@@ -299,16 +315,18 @@ class Merger:
         for _, info in infos:
             info.check(s.limits)
         local_grid, local_version = self.sources.local_snapshot()
+        vids = [m.vehicle_id for m, _ in infos]
+        shared_version = self._shared_version(local_version)
+        versions = {m.vehicle_id: m.version for m, _ in infos} | {self.vehicle_id: shared_version}
+        hints = self._hints(vids, versions)
+        alive = frozenset() if self.sources.peers_alive is None else self.sources.peers_alive()
+        hints_only = self.book.deferred(self.vehicle_id, vids, hints, s, time.monotonic(), alive)
+        if len(hints_only) == len(vids) and not any(hints):
+            return self._all_wait([m for m, _ in infos], inputs, shared_version)
         need = SCRATCH_BYTES_PER_CELL * (local_grid.size + sum(info.cells for _, info in infos))
         try:
             with self.budget.scratch("merge-scratch", need):
-                vids = [m.vehicle_id for m, _ in infos]
                 others = [decode_map(m.data, s.limits)[0] for m, _ in infos]
-                shared_version = self._shared_version(local_version)
-                versions = {m.vehicle_id: m.version for m, _ in infos} | {self.vehicle_id: shared_version}
-                hints = self._hints(vids, versions)
-                alive = frozenset() if self.sources.peers_alive is None else self.sources.peers_alive()
-                hints_only = self.book.deferred(self.vehicle_id, vids, hints, s, time.monotonic(), alive)
                 local_known = local_grid.counts().known
                 sizes = [local_known + g.counts().known for g in others]
                 contest = self.book.to_contest(vids, hints, sizes, s.recheck_growth)
@@ -338,6 +356,19 @@ class Merger:
             f"{len(accepted)} of {len(infos)} received maps merged {accepted} (local v{local_version}, "
             f"{rounds}); global {'x'.join(map(str, merged.shape))} cells"
         )
+
+    def _all_wait(self, maps: list, inputs: tuple | None, shared_version: int) -> tuple[str, str]:
+        """Every map's search waits for a peer and none has a hint: the merge would fuse nothing, so the
+        maps are not even decoded (at 30 drones, 29 drones each decoded 29 maps for nothing while the
+        first maps were still being exchanged). Booked as merge_all would report it."""
+        results = [WAITING] * len(maps)
+        sizes = [self.book.pair(m.vehicle_id).last_size for m in maps]  # unchanged: nothing was measured
+        self.book.record(self.vehicle_id, maps, results, sizes, set(), inputs, shared_version)
+        self._publish([])
+        self.global_slot.clear()
+        self.offsets = {m.vehicle_id: offset_entry(WAITING, False) for m in maps}
+        return "done", (f"0 of {len(maps)} received maps merged [] (each waits for the result of a lower "
+                        f"vehicle id, alive in the swarm); the global map is the local map")
 
     def _merge_options(self, vids: list[int], sizes: list[int], hints: list[list], hints_only: frozenset[int],
                        contest: frozenset[int], held: set[int]) -> dict:

@@ -115,9 +115,14 @@ def test_a_higher_vehicle_id_leaves_the_full_search_to_the_lower_one_and_validat
     edges (chained through 1 for map 2) without searching at all."""
     peer: list = []
     m = _merger(chain, peer, vehicle_id=5, defer_full_s=3600)
+    merge_fn, calls = m.merge_fn, []
+    m.merge_fn = lambda *a, **kw: calls.append(1) or merge_fn(*a, **kw)
     assert m.merge_once()["outcome"] == "done"
     assert m.counters["full_registrations"] == 0
     assert all(not o["accepted"] and o["reason"].startswith("deferred") for o in m.offsets.values())
+    # every map waits and none has a hint: nothing to fuse, so no merge ran (no map decoded)
+    assert calls == [] and "each waits for the result of a lower vehicle id" in m.last["detail"]
+    assert m.global_map() is None and m.book.left_out
     requested = m.trigger.requested
     m.on_peer_result()  # a result arrived and maps are left out: merge again, at once (the awaited answer)
     assert m.trigger.requested == requested + 1
