@@ -145,3 +145,10 @@ def test_flight_description_says_a_reduced_camera_rate():
     assert "reduced" not in swarm.flight_description("bookstore", 1, 30, default)
     said = swarm.flight_description("bookstore", 1, 30, default / 2)
     assert f"{default / 2:g} Hz (reduced from the emulator's {default:g} Hz)" in said and "30 drones" in said
+
+
+def test_the_polled_status_sections_exist_and_hold_what_the_checks_read():
+    from coopd.daemon.status import SECTIONS, check_sections
+
+    assert check_sections(swarm.POLLED_SECTIONS) <= SECTIONS.keys()
+    assert {"peers", "merges"} <= set(swarm.POLLED_SECTIONS)  # holds_all_maps, holds_global, gave_up
