@@ -164,7 +164,7 @@ def test_fits_held_by_a_merge_longer_than_settle_s_on_unchanged_maps_are_confirm
         feed = Feed(maps)
         fake = _same_fit_fake(truth, calls)
 
-        def slow(*a, **kw):
+        def slow(*a, changes=changes, feed=feed, fake=fake, **kw):
             time.sleep(0.6)  # a long search: longer than settle_s
             if changes:
                 feed.version += 1  # our map grew while it ran
@@ -172,8 +172,11 @@ def test_fits_held_by_a_merge_longer_than_settle_s_on_unchanged_maps_are_confirm
 
         m = _merger(feed, slow, confirm_before_fusing=True, min_gap_s=3600, settle_s=0.5,
                     sources={"local_version": lambda f=feed: f.version})
-        merge_once = m.merge_once
-        m.merge_once = lambda reason="request": done_at.append(time.monotonic()) or merge_once(reason)
+        def timed(reason="request", done_at=done_at, merge_once=m.merge_once):
+            done_at.append(time.monotonic())
+            return merge_once(reason)
+
+        m.merge_once = timed
         t = threading.Thread(target=m.run, daemon=True)
         t.start()
         try:

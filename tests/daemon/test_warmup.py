@@ -67,7 +67,8 @@ hints = [[Hint(t1, "peer", vouched=True)], [Hint(np.linalg.inv(t1) @ t2, "peer",
 r = merge_all(room, [a, b], hints=hints)
 after = signatures()
 assert [x.accepted for x in r.results] == [True, True] and r.vouched == 2, r
-print({k: sorted(map(str, after[k] - before.get(k, set()))) for k in after if after[k] - before.get(k, set())})
+new = {k: after[k] - before.get(k, set()) for k in after}
+print({k: sorted(map(str, v)) for k, v in new.items() if v})
 """
 
 
