@@ -61,7 +61,7 @@ class ThreadPriority:
 
 def read_nice(tid: int) -> int:
     """The nice value of one live thread of this process, read back from the kernel (getpriority on
-    its tid: one system call, where reading /proc/self/task/<tid>/stat costs a hundred times more and
+    its tid: one system call, where reading /proc/self/task/<tid>/stat costs about 60 times more, and
     status reads it for every thread, each time it is asked)."""
     return os.getpriority(os.PRIO_PROCESS, tid)
 
