@@ -38,7 +38,6 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -99,21 +98,6 @@ def in_global_map(entry: dict) -> bool:
     """Whether a status merges.offsets entry's map is fused into the global map: accepted, and not
     provisional (held out until confirmed)."""
     return bool(entry.get("accepted")) and not entry.get("provisional")
-
-
-@dataclass(frozen=True)
-class _Waiting:
-    """The result of a map whose full search waits for a peer, as merge_all reports it (its fields
-    that offset_entry, FitBook.record and the merge counters read)."""
-
-    accepted: bool = False
-    transform: np.ndarray = field(default_factory=lambda: np.eye(4))
-    score: float = 0.0
-    reason: str = "deferred: full search left to a peer's merge result"
-    method: str = "deferred"
-
-
-WAITING = _Waiting()
 
 
 def offset_summary(transform) -> dict:
@@ -361,12 +345,15 @@ class Merger:
         """Every map's search waits for a peer and none has a hint: the merge would fuse nothing, so the
         maps are not even decoded (at 30 drones, 29 drones each decoded 29 maps for nothing while the
         first maps were still being exchanged). Booked as merge_all would report it."""
-        results = [WAITING] * len(maps)
+        from coopd.merging.multi import waiting_result  # only merging with merge_all: the build has it
+
+        waiting = waiting_result()
+        results = [waiting] * len(maps)
         sizes = [self.book.pair(m.vehicle_id).last_size for m in maps]  # unchanged: nothing was measured
         self.book.record(self.vehicle_id, maps, results, sizes, set(), inputs, shared_version)
         self._publish([])
         self.global_slot.clear()
-        self.offsets = {m.vehicle_id: offset_entry(WAITING, False) for m in maps}
+        self.offsets = {m.vehicle_id: offset_entry(waiting, False) for m in maps}
         return "done", (f"0 of {len(maps)} received maps merged [] (each waits for the result of a lower "
                         f"vehicle id, alive in the swarm); the global map is the local map")
 

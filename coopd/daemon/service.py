@@ -848,7 +848,7 @@ class Daemon:
         return status_report.build(self, sections)
 
     def handle_peers(self, args: dict) -> dict:
-        return {"peers": status_report.peers(self, None if self.sharing is None else self.sharing.stats())}
+        return {"peers": status_report.build(self, frozenset({"peers"}))["peers"]}
 
     def handle_merge_now(self, args: dict) -> dict:
         return self.merger.merge_now(MERGE_NOW_TIMEOUT_S)

@@ -38,6 +38,13 @@ class GlobalMergeResult:
         return [r.transform if r.accepted else None for r in self.results]
 
 
+def waiting_result() -> MergeResult:
+    """The result of a map left out because its full search waits for a peer's merge result
+    (merge_all's hints_only, no hint validated)."""
+    return MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0,
+                       "deferred: full search left to a peer's merge result", method="deferred")
+
+
 def _order(pending: list[int], hints: list[list[Hint]]) -> list[int]:
     """Maps whose hints lean on another pending map (via) go after it, so the hint can resolve."""
     first = [i for i in pending if not any(h.via in pending for h in hints[i])]
@@ -266,6 +273,5 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
         searches.close()
     for i in range(len(others)):
         if results[i] is None:  # in hints_only, and no hint validated
-            results[i] = MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0,
-                                     "deferred: full search left to a peer's merge result", method="deferred")
+            results[i] = waiting_result()
     return GlobalMergeResult(world.grid, results, rounds, refused, full, checked[0], searches.cpu_s)
