@@ -288,7 +288,8 @@ class Daemon:
         self.camera = self._make_camera()
         self.associator = FrameAssociator(self.link, camera_mount(config), config.camera.pose_wait_s)
         self.mapper = self._make_mapper()
-        self.reanchor = FrameReanchor(self.link.frames, self.mapper, camera_mount(config))
+        self.reanchor = FrameReanchor(self.link.frames, self.mapper, camera_mount(config),
+                                      pose_wait_s=config.camera.pose_wait_s)
         self.latency_s: deque[float] = deque(maxlen=LATENCY_WINDOW)
         watched = (["main", "mapping", "merging"] + (["sharing"] if config.sharing.enabled else [])
                    + (["obstacles"] if obstacles_on(config) else []))  # the FC's obstacle feed

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -46,6 +47,20 @@ class AssociatedFrame:
     camera_pose: Pose
 
 
+def pose_waiting(pose_at: Callable[[float], object], t_fc: float, max_wait_s: float, poll_s: float = 0.005,
+                 stale: Callable[[], bool] = lambda: False):
+    """pose_at(t_fc), waiting up to max_wait_s while the frame is newer than the newest pose: odometry
+    for a frame's time may arrive just after the frame. Raises pose_at's LookupError (with `.reason`)."""
+    deadline = time.monotonic() + max_wait_s
+    while True:
+        try:
+            return pose_at(t_fc)
+        except LookupError as e:
+            if getattr(e, "reason", None) != "after_buffer" or time.monotonic() >= deadline or stale():
+                raise
+            time.sleep(poll_s)
+
+
 class FrameAssociator:
     """Frame time -> interpolated body pose (+ camera mount) -> camera pose; skips are counted by reason."""
 
@@ -76,21 +91,11 @@ class FrameAssociator:
         if self.poses.odometry_stale():
             return self._skip("odometry_stale")
         self._set_paused(False)
-        deadline = time.monotonic() + self.max_wait_s
-        while True:
-            try:
-                sample = self.poses.pose_at(frame.t_fc)
-                break
-            except LookupError as e:
-                reason = getattr(e, "reason", "no_pose")
-                if (
-                    reason == "after_buffer"
-                    and time.monotonic() < deadline
-                    and not self.poses.odometry_stale()
-                ):
-                    time.sleep(self.poll_s)
-                    continue
-                return self._skip(reason)
+        try:
+            sample = pose_waiting(self.poses.pose_at, frame.t_fc, self.max_wait_s, self.poll_s,
+                                  self.poses.odometry_stale)
+        except LookupError as e:
+            return self._skip(getattr(e, "reason", "no_pose"))
         try:
             body = Pose(sample.position, sample.quaternion)
             camera = self.mount.camera_pose(body)

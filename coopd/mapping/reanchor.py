@@ -30,6 +30,7 @@ from ..merging.hints import validate_hint
 from ..merging.pair import MergeResult, PreparedMap, as_given, prepare
 from ..merging.params import MergeParams, coopd_params
 from ..merging.validation import agreement
+from .association import pose_waiting
 from .mapper import Mapper
 from .sensor import CameraMount, FrameRejected, Pose
 
@@ -145,8 +146,11 @@ def placed_box(grid: OccupancyGrid, guess: np.ndarray, margin_m: float) -> tuple
 class FrameReanchor:
     """Owns the local map of the unanchored frame; offer() runs on the mapping thread."""
 
-    def __init__(self, frames, mapper: Mapper, mount: CameraMount, config: ReanchorConfig = ReanchorConfig()):
+    def __init__(self, frames, mapper: Mapper, mount: CameraMount, config: ReanchorConfig = ReanchorConfig(),
+                 pose_wait_s: float = 0.1):
         self.frames = frames
+        self.pose_wait_s = pose_wait_s
+        """How long a frame newer than the newest pose of the new frame waits for it (as in association)."""
         self.mapper = mapper
         self.mount = mount
         self.config = config
@@ -170,7 +174,7 @@ class FrameReanchor:
         if epoch != self._epoch:
             self._restart(epoch)
         try:
-            sample = self.frames.raw_pose_at(frame.t_fc)
+            sample = pose_waiting(self.frames.raw_pose_at, frame.t_fc, self.pose_wait_s)
             camera = self.mount.camera_pose(Pose(sample.position, sample.quaternion))
             self._local.integrate(frame.depth, frame.intrinsics, camera, frame.t_fc)
         except LookupError as e:

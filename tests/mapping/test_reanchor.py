@@ -1,6 +1,7 @@
 """Re-anchoring the FC's new frame on the map: a short local map registered from the hold guess."""
 
 import math
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -92,6 +93,32 @@ def test_a_guess_too_far_off_is_refused_and_mapping_stays_paused(mapped):
     assert frames.paused is not None and "re-anchoring:" in frames.paused
     s = reanchor.status()
     assert s["counters"]["refused"] >= 1 and "anchored" not in s["counters"]
+
+
+@pytest.mark.parametrize("pose_comes", [True, False])
+def test_a_frame_ahead_of_the_new_frames_odometry_waits_for_it(mapped, pose_comes):
+    """Odometry for a frame's time may arrive just after the frame: the frame waits pose_wait_s for it,
+    as in mapping (under load every frame after a reboot was skipped as after_buffer), and no longer."""
+    scene, poses, mapper = mapped
+    p = poses[0]
+    frames = FrameContinuity()
+    frames.admit(PoseSample(100.0, p.position, p.quaternion), 10.0)
+    frames.on_break(FC_REBOOT, PoseSample(100.0, p.position, p.quaternion), 10.0)
+    moved_away = np.eye(4)
+    moved_away[:3, 3] = (3.0, 0.0, 0.0)
+    frames.admit(moved(moved_away, p, 1.0), 12.0)
+    assert frames.paused is not None
+    reanchor = FrameReanchor(frames, mapper, OpticalMount(), pose_wait_s=0.5)
+    timer = threading.Timer(0.05, lambda: frames.admit(moved(moved_away, p, 1.1), 12.1))
+    if pose_comes:
+        timer.start()
+    reanchor.offer(Frame(1.05, render_depth(scene, INTR, p)))
+    counters = reanchor.status()["counters"]
+    if pose_comes:
+        timer.join()
+        assert counters == {"frames": 1}, counters
+    else:
+        assert counters == {"skipped_after_buffer": 1}, counters
 
 
 @pytest.mark.parametrize("guess_is_true", [True, False])
