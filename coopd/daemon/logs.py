@@ -62,12 +62,11 @@ class JournalFormatter(logging.Formatter):
 
 
 def formatter_for(stream, environ=None) -> logging.Formatter:
-    """Journal lines for the journal stream, timestamped lines on a terminal, plain lines otherwise."""
+    """Journal lines for the journal stream (journald adds the time), timestamped lines elsewhere: a
+    terminal, a file or a pipe (a log read after a run needs to say when each event happened)."""
     if stream_is_journal(stream, environ):
         return JournalFormatter()
-    if stream.isatty():
-        return logging.Formatter("%(asctime)s " + PLAIN_FORMAT)
-    return logging.Formatter(PLAIN_FORMAT)
+    return logging.Formatter("%(asctime)s " + PLAIN_FORMAT)
 
 
 def setup_logging(level: str, stream=None, environ=None) -> logging.Handler:

@@ -1,7 +1,8 @@
-"""Log lines: `<N>` syslog priorities when stderr is systemd's journal stream, plain lines otherwise."""
+"""Log lines: `<N>` syslog priorities when stderr is systemd's journal stream, timestamped lines otherwise."""
 
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -61,8 +62,9 @@ def test_setup_logging_picks_the_format_for_the_stream(tmp_path, root_logger):
         logging.getLogger("coopd.sharing").debug("not shown at info")
         setup_logging("info", stream, {})
         logging.getLogger("coopd.sharing").info("plain")
-    assert path.read_text().splitlines() == ["<4>WARNING coopd.sharing: peer 10.0.0.2 refused: auth",
-                                             "INFO coopd.sharing: plain"]
+    journal, plain = path.read_text().splitlines()
+    assert journal == "<4>WARNING coopd.sharing: peer 10.0.0.2 refused: auth"
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} INFO coopd.sharing: plain", plain), plain
 
 
 def test_coopd_writes_prefixed_lines_to_its_journal_stream(tmp_path, monkeypatch, root_logger):
