@@ -169,6 +169,19 @@ def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) 
     return Candidate(fit.transform, c.inliers, c.source)
 
 
+SHARE_TOO_SMALL = "of the maps' structure agrees"
+"""In the reason of a fit refused only for its overlap share (min_overlap, after every other check)."""
+
+
+def refused_for_size(r: MergeResult, params: MergeParams) -> bool:
+    """Whether r was refused in a way a global map many times the map's size brings about: for its
+    overlap share alone (its score passed; the global map's structure far from the map dilutes it), or
+    as ambiguous (maps fused with centimetres of error blur repeated structure such as shelf rows)."""
+    if r.accepted:
+        return False
+    return (SHARE_TOO_SMALL in r.reason and r.score >= params.min_score) or r.reason.startswith(AMBIGUOUS)
+
+
 def share(ag: Agreement, a: PreparedMap, b: PreparedMap) -> float:
     """Agreeing share of both maps' vertical-structure samples."""
     return ag.agree / max(1, len(a.summary.sample_m) + len(b.summary.sample_m))
@@ -181,7 +194,7 @@ def rejection(ag: Agreement, inliers: int, overlap: float, params: MergeParams) 
     if ag.agree < params.min_agreement:
         return f"overlap too small: {ag.agree} agreeing cells < {params.min_agreement}"
     if overlap < params.min_overlap:
-        return f"overlap too small: {overlap:.3f} of the maps' structure agrees < {params.min_overlap}"
+        return f"overlap too small: {overlap:.3f} {SHARE_TOO_SMALL} < {params.min_overlap}"
     if ag.score < params.min_score:
         return f"score {ag.score:.3f} < {params.min_score}"
     return None
