@@ -9,8 +9,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..grid import UNKNOWN, OccupancyGrid, fuse_transformed, resample
-from ..grid.transform import transformed_key_box
+from ..grid import OccupancyGrid, fuse_transformed, resample
 from .hints import Hint, check_vouched, resolve, try_hints
 from .pair import (
     MergeResult,
@@ -60,10 +59,6 @@ def _order(pending: list[int], hints: list[list[Hint]]) -> list[int]:
     return first + [i for i in pending if i not in first]
 
 
-AROUND_MARGIN_M = 1.0
-"""How far beyond a map's placed box the global map is read to judge a fit diluted by its size."""
-
-
 class _World:
     """The growing global map, prepared again only after something was fused into it."""
 
@@ -78,24 +73,6 @@ class _World:
         if self._prepared is None:
             self._prepared = prepare(self.grid, self.params, tm, lazy=True)
         return self._prepared
-
-    def around(self, grid: OccupancyGrid, transforms: list[np.ndarray], tm: dict):
-        """The global map near `grid` placed by any of transforms (its known box, AROUND_MARGIN_M
-        more, within the global map's box), prepared, or None where that is empty: a fit validated
-        there is judged on the structure the map could overlap, not diluted by the rest of a global
-        map many times its size (pair.refused_for_size)."""
-        boxes = [b for b in (transformed_key_box(grid, t) for t in transforms) if b is not None]
-        if not boxes:
-            return None
-        margin = int(np.ceil(AROUND_MARGIN_M / self.grid.resolution))
-        world_lo, world_hi = self.grid.key_bounds()
-        lo = np.maximum(np.min([b[0] for b in boxes], axis=0) - margin, world_lo)
-        hi = np.minimum(np.max([b[1] for b in boxes], axis=0) + margin, world_hi)
-        if np.any(hi < lo):
-            return None
-        near = OccupancyGrid(np.full(tuple(hi - lo + 1), UNKNOWN, dtype=np.int8), self.grid.resolution, lo)
-        near.paste(self.grid)
-        return prepare(near, self.params, tm, lazy=True)
 
     def fuse(self, grid: OccupancyGrid, transform: np.ndarray, tm: dict) -> None:
         t0 = time.perf_counter()
@@ -240,20 +217,14 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
             return check_vouched(reference_prepared(tm), prepared(i, tm), first, np.eye(4), params)
         return check_vouched(prepared(first.via, tm), prepared(i, tm), first, merged[first.via], params)
 
-    def diluted_search(i: int, r: MergeResult, tm: dict, known: list) -> tuple[MergeResult, int]:
-        """(result, searches run) for map i, refused by the global map in a way its size brings about
-        (pair.refused_for_size): searched again on the global map near where r places it, then on the
-        reference alone. The latter is what a merge with every fit held runs (the daemon's first merge),
-        so a map that arrives after others were fused is placed as it would have been before them."""
-        runs = 0
-        near = world.around(prepared(i, tm).grid, [r.transform], tm)
-        if near is not None:
-            again = merge_prepared(near, prepared(i, tm), params, tm, [*known, r.transform])
-            runs += 1
-            if again.accepted:
-                return again, runs
+    def search_alone(i: int, r: MergeResult, tm: dict, known: list) -> MergeResult:
+        """Map i, refused by the global map in a way its size brings about (pair.refused_for_size),
+        searched on the reference alone, the global map's refused fit competing: what a merge with
+        every fit held searches (the daemon's first merge), so a map that arrives after the others were
+        fused is placed as it would have been with them. Not the global map cut to the fit's
+        surroundings: in a building with a 180-degree symmetry the cut validates the mirrored fit."""
         alone = merge_prepared(reference_prepared(tm), prepared(i, tm), params, tm, [*known, r.transform])
-        return (alone if alone.accepted else r), runs + 1
+        return alone if alone.accepted else r
 
     def run_hints(todo: list[int]) -> None:
         """Try the hints of every map in todo, again as long as one of them merged."""
@@ -278,12 +249,6 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
                     continue
                 candidates = [(resolve(hints[i][k], merged), hints[i][k].source) for k in live]
                 r, n, final = try_hints(world.prepared(tm), prepared(i, tm), candidates, params)
-                again = [candidates[k] for k in range(len(candidates)) if k not in final]
-                near = world.around(prepared(i, tm).grid, [t for t, _ in again], tm) \
-                    if r is None and again and world.generation > 0 else None
-                if near is not None:  # refused, not for disagreeing: diluted by the global map's size?
-                    r, n2, _ = try_hints(near, prepared(i, tm), again, params)
-                    n += n2
                 refused[i] += n
                 dead.update((i, live[j]) for j in final)
                 if r is not None:
@@ -318,8 +283,8 @@ def merge_all(reference: OccupancyGrid, others: list[OccupancyGrid],
                     r = merge_prepared(world.prepared(tm), prepared(i, tm), params, tm, known)
                 full += 1
                 if refused_for_size(r, params) and world.generation > 0:
-                    r, n = diluted_search(i, r, tm, known)
-                    full += n
+                    r = search_alone(i, r, tm, known)
+                    full += 1
                 finish(i, r, tm, t0)
             pending = [i for i in pending if i not in merged]
             if len(merged) == before:
