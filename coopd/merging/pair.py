@@ -170,7 +170,7 @@ def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) 
 
 
 SHARE_TOO_SMALL = "of the maps' structure agrees"
-"""In the reason of a fit refused only for its overlap share (min_overlap, after every other check)."""
+"""In the reason of a fit refused for its overlap share (min_overlap; the score is checked after it)."""
 
 
 def refused_for_size(r: MergeResult, params: MergeParams) -> bool:
