@@ -177,9 +177,7 @@ def refused_for_size(r: MergeResult, params: MergeParams) -> bool:
     """Whether r was refused in a way a global map many times the map's size brings about: for its
     overlap share alone (its score passed; the global map's structure far from the map dilutes it), or
     as ambiguous (maps fused with centimetres of error blur repeated structure such as shelf rows)."""
-    if r.accepted:
-        return False
-    return (SHARE_TOO_SMALL in r.reason and r.score >= params.min_score) or r.reason.startswith(AMBIGUOUS)
+    return r.ambiguous or (not r.accepted and SHARE_TOO_SMALL in r.reason and r.score >= params.min_score)
 
 
 def share(ag: Agreement, a: PreparedMap, b: PreparedMap) -> float:

@@ -4,8 +4,8 @@ The lowest vehicle id of a swarm searches every map it holds; the others wait fo
 that reaches it after it fused the others is searched on the global map of all of them, many times
 the map's size. For each vehicle X of a simset flight: drone 1's merge with the other maps fused (by
 their own accepted transforms, as the daemon's next merge does) and X last. Reported per X: the
-search on the global map alone (what merge_all ran before it searched such a refusal again near the
-fit and on the reference alone) and merge_all's result, both judged against the flight's truth
+search on the global map alone (what merge_all ran before it searched such a refusal again on the
+reference alone) and merge_all's result, both judged against the flight's truth
 (within --tol-m and --tol-deg, as scripts/bench swarm judges a merge).
 Usage: scripts/bench late_map [--world bookstore] [--vehicles 30] [--maps 2,10,30]
 """
@@ -21,17 +21,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from coopd.geometry import rotation_angle_deg  # noqa: E402
 from coopd.merging import Hint, merge_all  # noqa: E402
 from coopd.merging.pair import merge_prepared, prepare  # noqa: E402
 from coopd.merging.params import coopd_params  # noqa: E402
 from firmware_sim import simset  # noqa: E402
+from firmware_sim.accuracy import offset_error  # noqa: E402
 
 
 def judged(r, truth: np.ndarray, tol_m: float, tol_deg: float) -> dict:
     """A result as the table shows it: placed right, placed wrong, or refused (with the reason)."""
-    te = float(np.linalg.norm(r.transform[:3, 3] - truth[:3, 3]))
-    re = rotation_angle_deg(r.transform[:3, :3].T @ truth[:3, :3])
+    te, re = offset_error(r.transform, truth)
     verdict = "refused" if not r.accepted else "right" if te < tol_m and re < tol_deg else "wrong"
     return {"verdict": verdict, "error_m": round(te, 3), "error_deg": round(re, 2),
             "score": round(r.score, 3), "overlap": round(r.overlap, 3), "reason": r.reason}
