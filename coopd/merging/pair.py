@@ -16,7 +16,7 @@ from .params import MergeParams, coopd_params
 from .preprocess import despeckle
 from .ransac import filter_correspondences
 from .refine import OccupiedCells, field_fit, free_sides, icp
-from .validation import Agreement, MapSummary, agreement, summarise
+from .validation import Agreement, MapSummary, agreement, loosest_move, summarise
 
 AMBIGUOUS = "ambiguous"
 """How the reason of a result refused for a close distinct runner-up begins (MergeResult.ambiguous)."""
@@ -92,7 +92,8 @@ def prepare(grid: OccupancyGrid, params: MergeParams, timings: dict | None = Non
     grid = despeckle(grid, params)
     tm["despeckle"] = tm.get("despeckle", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
-    summary = summarise(grid, params.occupied_threshold, params.validation_max_points)
+    summary = summarise(grid, params.occupied_threshold, params.validation_max_points,
+                        params.validation_min_run(grid.resolution))
     occupied = OccupiedCells(grid.cells >= params.occupied_threshold, grid.offset, grid.resolution,
                              cells=grid.cells if params.refine_facing else None,
                              threshold=params.occupied_threshold)
@@ -143,15 +144,41 @@ def _refine_points(b: PreparedMap, params: MergeParams) -> tuple[np.ndarray, np.
     return b.refine_points[1], b.refine_points[2]
 
 
-def _refined(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) -> Candidate:
-    """The hypothesis pulled onto a's occupied cells by ICP (unchanged when refinement is off)."""
+def _refined(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams,
+             step: bool = False) -> Candidate:
+    """The hypothesis pulled onto a's occupied cells by ICP (unchanged when refinement is off); step:
+    then moved by whole cells while that raises its support (_cell_steps)."""
     if not (params.refine and len(a.summary.occupied_m) and len(b.summary.occupied_m)):
         return c
     src, normals = _refine_points(b, params)
-    t, frac = icp(a.occupied, src, c.transform, params.refine_iterations,
-                  normals if params.refine_facing else None)
+    normals = normals if params.refine_facing else None
+    t, frac = icp(a.occupied, src, c.transform, params.refine_iterations, normals)
+    if step:
+        t = _cell_steps(a, b, t, params)
     inliers = int(round(frac * len(src))) if c.source in ("search", "given") else c.inliers
     return Candidate(t, inliers, c.source)
+
+
+def _cell_steps(a: PreparedMap, b: PreparedMap, t: np.ndarray, params: MergeParams) -> np.ndarray:
+    """t moved by whole cells of a in x and y, one step to the best of the eight neighbours at a time,
+    while that raises the support (params.refine_cell_steps steps at most); t itself when no step
+    does."""
+    step = a.grid.resolution
+    support = agreement(a.summary, b.summary, t).support(params.conflict_weight)
+    for _ in range(params.refine_cell_steps):
+        moves = []
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                if dx or dy:
+                    m = t.copy()
+                    m[0, 3] += dx * step
+                    m[1, 3] += dy * step
+                    moves.append((agreement(a.summary, b.summary, m).support(params.conflict_weight), m))
+        best, m = max(moves, key=lambda x: x[0])
+        if best <= support:
+            break
+        support, t = best, m
+    return t
 
 
 def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) -> Candidate:
@@ -253,13 +280,14 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     if params.hypotheses > 0:
         cands += _feature_candidates(a, b, params, tm)
     t0 = time.perf_counter()
+    strongest = cands[0] if cands and cands[0].source == "search" else None  # the search's top peak
     if params.refine and len(cands) > params.refine_candidates:
         coarse = [agreement(a.summary, b.summary, c.transform).support(params.conflict_weight) for c in cands]
         cands = [cands[i] for i in np.argsort(coarse)[::-1][: params.refine_candidates]]
     cands += [Candidate(np.asarray(t, dtype=np.float64), 0, "given") for t in known]  # always refined
     scored: list[tuple[float, Agreement, Candidate]] = []
     for c in cands:
-        c = _refined(a, b, c, params)
+        c = _refined(a, b, c, params, step=c is strongest)
         ag = agreement(a.summary, b.summary, c.transform)
         scored.append((ag.support(params.conflict_weight), ag, c))
     tm["validate"] = time.perf_counter() - t0
@@ -280,6 +308,11 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     if reason == "accepted" and runner is not None and close_runner_up(runner[0], top, params.min_margin):
         reason = f"{AMBIGUOUS}: a distinct hypothesis scores {runner[1].score:.3f} with support " \
                  f"{runner[0]:.0f} vs {top:.0f}"
+    if reason == "accepted":
+        move, kept = loosest_move(a.summary, b.summary, best.transform, params.conflict_weight,
+                                  params.pin_turn_deg, params.pin_slide_m)
+        if close_runner_up(kept, 1.0, params.min_margin):
+            reason = f"{AMBIGUOUS}: {move} keeps {kept:.0%} of the support; the overlap does not pin b"
     return MergeResult(reason == "accepted", best.transform, best.inliers, best_ag.score, best_ag.agree,
                        best_ag.conflicts, runner_score, reason, overlap, tm)
 

@@ -113,6 +113,13 @@ class MergeParams:
     """ICP steps: the first half shrink the correspondence radius from 6 to 1.5 cells, the rest hold it
     (14 left some transforms 0.2 m short of convergence)."""
     refine_max_points: int = 4000
+    refine_cell_steps: int = 3
+    """After ICP, the search's strongest peak is moved by one cell at a time along x or y (or both)
+    while that raises its support, at most this many steps: ICP between cell centres can stop two
+    cells off the truth in dense structure (a warehouse's shelves in the whole-building maps of
+    scripts/bench thesis), where the conflicts of that slide ranked the right hypothesis last.
+    Only that peak: stepping every hypothesis lets wrong ones gain as much (in scripts/bench merge
+    it merged a pair of maps 16 m apart)."""
     refine_facing: bool = True
     """ICP pairs a cell of b only with cells of a seen from the same side (refine.facing_bits): where
     each map saw a wall from its own side, plain ICP pulled the two sides together (0.14 m and three
@@ -134,6 +141,16 @@ class MergeParams:
     # --- validation (coopd; the thesis leaves it as future work)
     min_inliers: int = 5
     validation_max_points: int = 30000
+    validation_min_height_m: float = 0.3
+    """Validation samples occupied cells on vertical structure: runs of occupied cells straight above
+    one another at least this tall (at least two cells): 3 cells at 0.1 m, 2 at 0.2 m. A floor is
+    often two cells thick and a tilted one steps up a cell every few metres, so a run of two 0.1 m
+    cells is no wall; outdoors, where few walls are seen, such floor cells were most of the samples
+    and wrong fits that lay ground on ground validated (scripts/bench merge)."""
+
+    def validation_min_run(self, resolution: float) -> int:
+        """validation_min_height_m in cells of a map of this resolution."""
+        return max(2, int(round(self.validation_min_height_m / resolution)))
     min_score: float = 0.94
     """Agreement of overlapping known cells: agree / (agree + occupied-vs-free conflicts). Real flight
     maps carry drift: correct transforms score 0.94-1.0 there (0.977-0.988 in the daemons' demo
@@ -156,6 +173,12 @@ class MergeParams:
     min_margin: float = 0.15
     """A distinct runner-up (> 5 deg or > 1 m away) must stay below (1 - min_margin) of the best
     support: two fits that explain the maps about as well leave the choice to later, larger maps."""
+    pin_turn_deg: float = 10.0
+    pin_slide_m: float = 1.0
+    """The winner must lose more than min_margin of its support when b is turned by pin_turn_deg about
+    where the maps agree or slid by pin_slide_m along or across that agreement
+    (validation.loosest_move): an overlap of one pole or one straight wall agrees as well turned or
+    slid, and is reported as ambiguous."""
     # --- multi-map (§8, Figure 35)
     max_rounds: int = 3
 

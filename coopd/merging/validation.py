@@ -56,19 +56,29 @@ def classify(cells, threshold):
 
 
 @nb.njit(**_JIT)
-def _stacked(cells, threshold, x, y, z):
-    """Whether the occupied cell (x, y, z) has an occupied cell straight above or below."""
-    below = z > 0 and cells[x, y, z - 1] >= threshold
-    return below or (z + 1 < cells.shape[2] and cells[x, y, z + 1] >= threshold)
+def _on_column(cells, threshold, x, y, z, min_run):
+    """Whether the occupied cell (x, y, z) is part of a vertical run of at least min_run occupied
+    cells (itself included)."""
+    run = 1
+    k = z - 1
+    while run < min_run and k >= 0 and cells[x, y, k] >= threshold:
+        run += 1
+        k -= 1
+    k = z + 1
+    while run < min_run and k < cells.shape[2] and cells[x, y, k] >= threshold:
+        run += 1
+        k += 1
+    return run >= min_run
 
 
 @nb.njit(**_JIT)
-def occupied_indices(cells, threshold):
-    """(indices of the occupied cells, indices of those on vertical structure: an occupied cell
-    straight above or below, walls and furniture sides), both in array order as np.argwhere gives
+def occupied_indices(cells, threshold, min_run):
+    """(indices of the occupied cells, indices of those on vertical structure: in a vertical run of at
+    least min_run occupied cells, walls and furniture sides), both in array order as np.argwhere gives
     them; one pass to count, one to fill. Floors and ceilings agree under any horizontal shift or
     yaw, so counting them would let a wrong transform that merely lays floor on floor look good:
-    validation samples vertical structure only."""
+    validation samples vertical structure only. A floor is often two cells thick (its plane near a
+    cell boundary) and a tilted one steps up a cell every few metres, so a run of two is no wall."""
     mx, my, mz = cells.shape
     n = m = 0
     for x in range(mx):
@@ -76,7 +86,7 @@ def occupied_indices(cells, threshold):
             for z in range(mz):
                 if cells[x, y, z] >= threshold:
                     n += 1
-                    m += _stacked(cells, threshold, x, y, z)
+                    m += _on_column(cells, threshold, x, y, z, min_run)
     occupied = np.empty((n, 3), dtype=np.int64)
     vertical = np.empty((m, 3), dtype=np.int64)
     n = m = 0
@@ -86,15 +96,16 @@ def occupied_indices(cells, threshold):
                 if cells[x, y, z] >= threshold:
                     occupied[n, 0], occupied[n, 1], occupied[n, 2] = x, y, z
                     n += 1
-                    if _stacked(cells, threshold, x, y, z):
+                    if _on_column(cells, threshold, x, y, z, min_run):
                         vertical[m, 0], vertical[m, 1], vertical[m, 2] = x, y, z
                         m += 1
     return occupied, vertical
 
 
-def summarise(grid: OccupancyGrid, threshold: int, max_points: int) -> MapSummary:
-    """Classes and occupied points of a grid, computed once per map."""
-    occupied, vertical = occupied_indices(grid.cells, threshold)
+def summarise(grid: OccupancyGrid, threshold: int, max_points: int, min_run: int = 2) -> MapSummary:
+    """Classes and occupied points of a grid, computed once per map; vertical structure is a run of at
+    least min_run occupied cells."""
+    occupied, vertical = occupied_indices(grid.cells, threshold, min_run)
     pts = (occupied + grid.offset) * grid.resolution
     vert = (vertical + grid.offset) * grid.resolution
     step = max(1, len(vert) // max(1, max_points))
@@ -147,3 +158,48 @@ def agreement(a: MapSummary, b: MapSummary, t_ab: np.ndarray) -> Agreement:
     g1, c1 = _count(b.sample_m, t_ab, a.classes, a.offset, a.resolution)
     g2, c2 = _count(a.sample_m, invert(t_ab), b.classes, b.offset, b.resolution)
     return Agreement(int(g1 + g2), int(c1 + c2))
+
+
+def agreeing_points(a: MapSummary, b: MapSummary, t_ab: np.ndarray) -> np.ndarray:
+    """b's vertical-structure samples that t_ab lands next to an occupied cell of a (a's frame)."""
+    p = b.sample_m @ t_ab[:3, :3].T + t_ab[:3, 3]
+    k = np.floor(p / a.resolution + 0.5).astype(np.int64) - a.offset
+    inside = np.all((k >= 0) & (k < np.array(a.classes.shape)), axis=1)
+    near = np.zeros(len(p), dtype=bool)
+    near[inside] = a.classes[tuple(k[inside].T)] == NEAR_OCCUPIED
+    return p[near]
+
+
+def _turn_about(yaw_rad: float, centre: np.ndarray) -> np.ndarray:
+    """A turn about the vertical line through centre."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    t = np.eye(4)
+    t[:2, :2] = ((c, -s), (s, c))
+    t[:2, 3] = centre[:2] - t[:2, :2] @ centre[:2]
+    return t
+
+
+def loosest_move(a: MapSummary, b: MapSummary, t_ab: np.ndarray, conflict_weight: float, yaw_deg: float,
+                 shift_m: float) -> tuple[str, float]:
+    """The move of b away from t_ab that keeps the most of its support, and the share it keeps: b
+    turned by +-yaw_deg about the middle of where it agrees with a, or slid +-shift_m along either
+    horizontal axis of that agreement. An overlap that pins the transform loses its support under
+    every such move; one pole keeps it under any turn about itself and one straight wall under a
+    slide along it, so the maps do not say where b belongs, however well they agree."""
+    t_ab = np.ascontiguousarray(t_ab, dtype=np.float64)
+    base = agreement(a, b, t_ab).support(conflict_weight)
+    pts = agreeing_points(a, b, t_ab)
+    if base <= 0 or len(pts) < 3:
+        return "none", 0.0
+    centre = pts.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((pts[:, :2] - centre[:2]).T))
+    moves = {f"a {yaw_deg:g} deg turn": _turn_about(np.radians(yaw_deg), centre),
+             f"a -{yaw_deg:g} deg turn": _turn_about(-np.radians(yaw_deg), centre)}
+    for name, axis in (("along", axes[:, 1]), ("across", axes[:, 0])):
+        for sign in (1, -1):
+            m = np.eye(4)
+            m[:2, 3] = sign * shift_m * axis
+            moves[f"a {sign * shift_m:g} m slide {name} the overlap"] = m
+    kept = {name: agreement(a, b, m @ t_ab).support(conflict_weight) / base for name, m in moves.items()}
+    name = max(kept, key=kept.get)
+    return name, float(kept[name])

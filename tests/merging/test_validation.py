@@ -1,12 +1,16 @@
 import numpy as np
 
 from coopd.geometry import rigid, rotation_z
+from coopd.grid import OccupancyGrid
+from coopd.merging.pair import merge_pair
+from coopd.merging.params import coopd_params
 from coopd.merging.validation import (
     FREE,
     NEAR_OCCUPIED,
     UNSEEN,
     agreement,
     classify,
+    loosest_move,
     occupied_indices,
     summarise,
 )
@@ -35,13 +39,72 @@ def test_true_transform_scores_high_and_wrong_ones_low(near_pair):
 
 
 def test_occupied_and_vertical_cells_are_listed_as_argwhere_lists_them(near_pair):
-    """occupied_indices lists, in one scan, the occupied cells and those with an occupied cell
-    straight above or below, in np.argwhere's order (the samples validation spreads evenly)."""
+    """occupied_indices lists, in one scan, the occupied cells and those in a vertical run of at
+    least min_run occupied cells, in np.argwhere's order (the samples validation spreads evenly)."""
     cells = near_pair.a.cells
     occupied = cells >= 50
-    stacked = np.zeros_like(occupied)
-    stacked[:, :, 1:] |= occupied[:, :, 1:] & occupied[:, :, :-1]
-    stacked[:, :, :-1] |= occupied[:, :, :-1] & occupied[:, :, 1:]
-    listed, vertical = occupied_indices(cells, 50)
-    assert np.array_equal(listed, np.argwhere(occupied))
-    assert np.array_equal(vertical, np.argwhere(stacked)) and 0 < len(vertical) < len(listed)
+    for min_run in (2, 3):
+        run = np.zeros(occupied.shape, dtype=np.int64)  # length of the run each occupied cell is in
+        for x, y in np.argwhere(occupied.any(axis=2)):
+            column = occupied[x, y]
+            z = 0
+            while z < len(column):
+                if column[z]:
+                    end = z
+                    while end < len(column) and column[end]:
+                        end += 1
+                    run[x, y, z:end] = end - z
+                    z = end
+                else:
+                    z += 1
+        listed, vertical = occupied_indices(cells, 50, min_run)
+        assert np.array_equal(listed, np.argwhere(occupied))
+        assert np.array_equal(vertical, np.argwhere(run >= min_run)) and 0 < len(vertical) < len(listed)
+
+
+def test_a_two_cell_thick_or_tilted_floor_is_not_vertical_structure():
+    """A floor whose plane lies near a cell boundary fills two layers, and a floor tilted by a few
+    degrees steps up a cell every few metres: runs of two 0.1 m cells. A 0.3 m wall is structure."""
+    cells = np.full((60, 20, 12), 0, dtype=np.int8)
+    cells[:, :, 2:4] = 90  # a floor two cells thick
+    for x in range(60):  # a floor tilted by 3 degrees: one cell up every ~1.9 m
+        cells[x, 10:, 2:4] = 0
+        cells[x, 10:, 2 + x // 19] = 90
+    cells[30, :10, 4:7] = 90  # a wall three cells tall on the thick floor
+    params = coopd_params()
+    assert params.validation_min_run(0.1) == 3 and params.validation_min_run(0.2) == 2
+    _, vertical = occupied_indices(cells, 50, params.validation_min_run(0.1))
+    assert len(vertical) > 0 and set(vertical[:, 0]) == {30}
+    _, stacked = occupied_indices(cells, 50, 2)
+    assert len(stacked) > 60 * 10 * 2  # every cell of the thick floor counted as a wall
+
+
+def _map(occupied_cells, shape=(80, 80, 16), offset=(-40, -40, -2)):
+    """A grid seen all round (free), with the given occupied cells (array indices)."""
+    cells = np.full(shape, 0, dtype=np.int8)
+    for idx in occupied_cells:
+        cells[idx] = 90
+    return OccupancyGrid(cells, 0.1, np.array(offset))
+
+
+def _pole(cx, cy, radius=3, arc_deg=360.0):
+    """The cells of a vertical pole's surface seen over arc_deg of its round."""
+    return [(cx + dx, cy + dy, slice(2, 14)) for dx in range(-radius, radius + 1)
+            for dy in range(-radius, radius + 1)
+            if radius - 1 <= np.hypot(dx, dy) <= radius and np.degrees(np.arctan2(dy, dx)) % 360 <= arc_deg]
+
+
+def test_one_pole_agrees_as_well_turned_and_one_wall_slid_but_a_corner_pins_the_fit():
+    pole = summarise(_map(_pole(40, 40)), 50, 20000, 3)
+    name, kept = loosest_move(pole, pole, np.eye(4), 20.0, 10.0, 1.0)
+    assert "turn" in name and kept > 0.95
+    floor_and_pole = _map(_pole(40, 40, radius=5, arc_deg=240) + [(slice(None), slice(None), slice(0, 2))])
+    r = merge_pair(floor_and_pole, floor_and_pole)  # a pole seen from one side, on a floor
+    assert not r.accepted and r.ambiguous and "turn keeps" in r.reason, r.reason
+    wall = summarise(_map([(slice(0, 80), 40, slice(2, 14))]), 50, 20000, 3)  # its ends unseen
+    name, kept = loosest_move(wall, wall, np.eye(4), 20.0, 10.0, 1.0)
+    assert "along" in name and kept >= 1 - coopd_params().min_margin
+    corner = summarise(_map([(slice(10, 70), 40, slice(2, 14)), (10, slice(10, 70), slice(2, 14))]),
+                       50, 20000, 3)
+    name, kept = loosest_move(corner, corner, np.eye(4), 20.0, 10.0, 1.0)
+    assert kept < 0.6
