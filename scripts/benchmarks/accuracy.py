@@ -18,8 +18,12 @@ Goal: every drone, own and global map: surface precision and recall >= 0.95; glo
 the lowest of its members' own maps by more than 0.02; coopd >= OctoMap on both (replay).
 Usage: scripts/benchmarks/accuracy.py [--worlds a,b] [--drones 3] [--seed 1] [--speed 2] [--frame-step 3]
        [--autopilot px4|ardupilot] [--network auto|netns|loopback] [--port-base N] [--tabulate]
-       [--no-replay]
+       [--no-replay] [--depth-noise SIGMA] [--mapper KEY=VALUE,...]
 (--tabulate: no flights, score and tabulate the runs already in out/bench/accuracy/WORLD/)
+--depth-noise gives the replayed frames the emulated camera's range noise (SIGMA * depth^2, seeded; the
+truth samples stay those of the clean frames) in both mappers, --mapper changes the coopd replay's
+settings (e.g. miss_decrement=5); either names the outputs after it (out/bench/accuracy-noise0.01.json,
+accuracy-miss_decrement5.json), the flights stay in out/bench/accuracy/WORLD/.
 --autopilot ardupilot flies ArduCopter-personality drones (coopd builds its poses from
 LOCAL_POSITION_NED + ATTITUDE_QUATERNION) and writes out/bench/accuracy-ardupilot.{json,md} and
 out/bench/accuracy-ardupilot/WORLD/, beside the PX4 run's files.
@@ -136,11 +140,12 @@ def render_frames(world, cam: CameraConfig, poses):
     return frames
 
 
-def replay_coopd(frames, poses, cam: CameraConfig, beyond: str):
-    """coopd's mapper (defaults, as the daemons) fed the frames at their true poses."""
+def replay_coopd(frames, poses, cam: CameraConfig, beyond: str, settings: dict | None = None):
+    """coopd's mapper (defaults, as the daemons, unless settings change some) fed the frames at their
+    true poses."""
     fx, fy, cx, cy = cam.intrinsics()
     intr = Intrinsics(cam.width, cam.height, fx, fy, cx, cy)
-    mapper = Mapper(MapperConfig(beyond_max_range=beyond))
+    mapper = Mapper(MapperConfig(**(settings or {}) | {"beyond_max_range": beyond}))
     for depth, (origin, rot) in zip(frames, poses, strict=True):
         mapper.integrate(depth, intr, Pose(origin, matrix_to_quat(rot)))
     return mapper.grid
@@ -208,11 +213,19 @@ def truth_samples(frames, poses, cam: CameraConfig, shapes, max_range: float, re
     return surface, free
 
 
+def with_range_noise(frames, sigma_at_1m: float, seed: int):
+    """The frames with the emulated camera's range noise (firmware_sim.camera: a normal error of
+    sigma_at_1m * depth^2, seeded); no return stays no return."""
+    rng = np.random.default_rng(seed)
+    return [(d + rng.standard_normal(d.shape) * sigma_at_1m * d * d).astype(np.float32) for d in frames]
+
+
 # ------------------------------------------------------------------------------- scoring
 def score_world(world_name: str, seed: int, run_out: Path, report: dict, frame_step: int,
-                replay: bool = True) -> list[dict]:
+                replay: bool = True, depth_noise: float = 0.0, mapper: dict | None = None) -> list[dict]:
     """Every drone of one run: surface metric of its own and global map, the replay beside it (unless
-    replay is False: the daemons' maps only)."""
+    replay is False: the daemons' maps only). depth_noise: range noise the replayed frames carry into
+    both mappers (the truth samples come from the clean frames); mapper: coopd replay settings."""
     world = build_world(world_name, seed)
     config = MapperConfig()
     strict = {d["drone"]: d for d in report.get("accuracy", [])}
@@ -225,6 +238,8 @@ def score_world(world_name: str, seed: int, run_out: Path, report: dict, frame_s
         f["frames"] = render_frames(world, cam, f["poses"])
         seen[vid], f["free"] = truth_samples(f["frames"], f["poses"], cam, world.shapes, config.max_range,
                                              config.resolution, seed * 1000 + vid)
+        if depth_noise > 0:
+            f["frames"] = with_range_noise(f["frames"], depth_noise, seed * 1000 + vid)
     for vid, f in flights.items():
         row = {"world": world_name, "drone": vid, "members": f["members"],
                "replay_frames": len(f["frames"]), "wall_s": round(report.get("elapsed_s", 0.0))}
@@ -240,8 +255,8 @@ def score_world(world_name: str, seed: int, run_out: Path, report: dict, frame_s
             row[which]["strict"] = {k: (strict.get(vid) or {}).get(which, {}).get(k)
                                     for k in ("precision", "recall", "precision_tol1", "recall_tol1")}
         for name, grid, frame in () if not replay else (
-                ("coopd", replay_coopd(f["frames"], f["poses"], f["camera"], "clear"), np.eye(4)),
-                ("coopd_drop", replay_coopd(f["frames"], f["poses"], f["camera"], "drop"), np.eye(4)),
+                ("coopd", replay_coopd(f["frames"], f["poses"], f["camera"], "clear", mapper), np.eye(4)),
+                ("coopd_drop", replay_coopd(f["frames"], f["poses"], f["camera"], "drop", mapper), np.eye(4)),
                 ("octomap", *replay_octomap(f["frames"], f["poses"], f["camera"], config))):
             row[name] = acc.surface_accuracy(grid, frame, world.shapes, seen[vid])
             row[name]["free"] = acc.free_share(grid, frame, f["free"])
@@ -322,6 +337,21 @@ def meets_goal(r: dict) -> bool:
     return all(r["goal"].values())
 
 
+def mapper_settings(text: str) -> dict:
+    """--mapper's KEY=VALUE,... as MapperConfig fields of their own types; ValueError or TypeError
+    on an unknown field or a value of the wrong kind."""
+    defaults = MapperConfig()
+    out = {}
+    for item in (i for i in text.split(",") if i):
+        key, _, value = item.partition("=")
+        if not hasattr(defaults, key) or key == "growth":
+            raise ValueError(f"no mapper setting {key!r}")
+        kind = type(getattr(defaults, key))
+        out[key] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+    MapperConfig(**out)
+    return out
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--worlds", default=",".join(GENERATORS))
@@ -340,8 +370,19 @@ def main() -> int:
     p.add_argument("--tabulate", action="store_true", help="no flights: score the runs already there")
     p.add_argument("--no-replay", action="store_true",
                    help="score the daemons' maps only, no coopd/OctoMap replay (e.g. to compare autopilots)")
+    p.add_argument("--depth-noise", type=float, default=0.0, metavar="SIGMA",
+                   help="replayed frames carry range noise SIGMA * depth^2 (m; 0.01 is a RealSense D435's "
+                        "2 %% at 2 m) into both mappers")
+    p.add_argument("--mapper", default="", metavar="KEY=VALUE,...",
+                   help="coopd replay settings (MapperConfig fields), e.g. miss_decrement=5")
     a = p.parse_args()
-    name = "accuracy" if a.autopilot == "px4" else f"accuracy-{a.autopilot}"
+    try:
+        mapper = mapper_settings(a.mapper)
+    except (ValueError, TypeError) as e:
+        p.error(f"--mapper: {e}")
+    flights = "accuracy" if a.autopilot == "px4" else f"accuracy-{a.autopilot}"
+    name = flights + (f"-noise{a.depth_noise:g}" if a.depth_noise else "") + "".join(
+        f"-{k}{v}" for k, v in mapper.items())
     worlds = [w for w in a.worlds.split(",") if w]
     unknown = sorted(set(worlds) - set(GENERATORS))
     if unknown:
@@ -350,17 +391,18 @@ def main() -> int:
     rows = []
     for world in worlds:
         print(f"accuracy: {world} ...", flush=True)
-        run_out = a.out / name / world
+        run_out = a.out / flights / world
         run_out.mkdir(parents=True, exist_ok=True)
         report = run_demo(world, a, run_out)
         if report is None:
             continue
-        world_rows = score_world(world, a.seed, run_out, report, a.frame_step, replay=not a.no_replay)
+        world_rows = score_world(world, a.seed, run_out, report, a.frame_step, replay=not a.no_replay,
+                                 depth_noise=a.depth_noise, mapper=mapper)
         print(markdown(world_rows), flush=True)
         rows += world_rows
         (a.out / f"{name}.json").write_text(json.dumps(
             {"goal": GOAL, "autopilot": a.autopilot, "drones": a.drones, "seed": a.seed, "speed": a.speed,
-             "frame_step": a.frame_step,
+             "frame_step": a.frame_step, "depth_noise": a.depth_noise, "replay_mapper": mapper,
              "camera_reach_m": CAMERA_REACH_M, "rows": rows}, indent=1))
         (a.out / f"{name}.md").write_text(markdown(rows))
     print(markdown(rows))

@@ -99,3 +99,22 @@ def test_without_the_replay_the_goal_and_tables_leave_out_the_octomap_comparison
     assert "| maze | 1 |" in table and "OctoMap" not in table
     replayed = dict(row, coopd=good, octomap=low)
     assert bench.goal_checks(replayed, [good, good])["coopd_vs_octomap"] is True
+
+
+def test_range_noise_grows_with_depth_squared_and_leaves_no_return_alone():
+    frames = [np.full((60, 80), 1.0, np.float32), np.full((60, 80), 3.0, np.float32)]
+    frames[0][0, 0] = np.nan
+    noisy = bench.with_range_noise(frames, 0.01, seed=7)
+    assert np.isnan(noisy[0][0, 0])
+    near, far = noisy[0][1:] - 1.0, noisy[1] - 3.0
+    assert 0.008 < np.std(near) < 0.012 and 0.08 < np.std(far) < 0.1     # 0.01 * d^2 at 1 m and 3 m
+    again = bench.with_range_noise(frames, 0.01, seed=7)
+    assert np.array_equal(noisy[1], again[1])
+
+
+def test_mapper_settings_take_each_fields_own_type():
+    assert bench.mapper_settings("miss_decrement=5,beyond_max_range=drop,gap_fill=false") == {
+        "miss_decrement": 5, "beyond_max_range": "drop", "gap_fill": False}
+    for bad in ("nonsense=1", "miss_decrement=five"):
+        with pytest.raises(ValueError):
+            bench.mapper_settings(bad)
