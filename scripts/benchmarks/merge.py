@@ -326,7 +326,8 @@ def parse_args(argv=None):
     ap.add_argument("--robust", default=ROBUST, help="B variants merged for every fresh pair ('' for none)")
     ap.add_argument("--variants", default="coopd", help=f"coopd variants ({', '.join(VARIANTS)})")
     ap.add_argument("--no-open3d", action="store_true")
-    ap.add_argument("--out", type=Path, default=Path("out/bench/merge.json"))
+    ap.add_argument("--out", type=Path, default=Path("out/bench/merge.json"),
+                    help="the JSON report; an existing directory gets merge.json in it")
     ap.add_argument("--cache", type=Path, default=None,
                     help="directory keeping the pairs between runs with the same seed and counts")
     args = ap.parse_args(argv)
@@ -335,6 +336,8 @@ def parse_args(argv=None):
             ap.error(f"unknown variant {v!r}")
     if min(args.worlds, args.per_world, args.references, args.pairs, args.far) < 0:
         ap.error("counts must not be negative")
+    if args.out.is_dir():  # known now, not after the whole run
+        args.out = args.out / "merge.json"
     return args
 
 

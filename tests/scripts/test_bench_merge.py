@@ -83,3 +83,9 @@ def test_bad_arguments_are_refused():
         merge.parse_args(["--variants", "nonesuch"])
     with pytest.raises(SystemExit):
         merge.parse_args(["--worlds", "-1"])
+
+
+def test_out_may_name_a_directory(tmp_path):
+    """--out DIR writes DIR/merge.json (it used to fail after the whole run, renaming onto DIR)."""
+    assert merge.parse_args(["--out", str(tmp_path)]).out == tmp_path / "merge.json"
+    assert merge.parse_args(["--out", str(tmp_path / "x.json")]).out == tmp_path / "x.json"
