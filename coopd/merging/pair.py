@@ -196,6 +196,9 @@ def _subcell(a: PreparedMap, b: PreparedMap, c: Candidate, params: MergeParams) 
     return Candidate(fit.transform, c.inliers, c.source)
 
 
+UNPINNED = "the overlap does not pin b"
+"""In the reason of a fit refused because b turned or slid agrees about as well (validation.loosest_move)."""
+
 SHARE_TOO_SMALL = "of the maps' structure agrees"
 """In the reason of a fit refused for its overlap share (min_overlap; the score is checked after it)."""
 
@@ -203,8 +206,10 @@ SHARE_TOO_SMALL = "of the maps' structure agrees"
 def refused_for_size(r: MergeResult, params: MergeParams) -> bool:
     """Whether r was refused in a way a global map many times the map's size brings about: for its
     overlap share alone (its score passed; the global map's structure far from the map dilutes it), or
-    as ambiguous (maps fused with centimetres of error blur repeated structure such as shelf rows)."""
-    return r.ambiguous or (not r.accepted and SHARE_TOO_SMALL in r.reason and r.score >= params.min_score)
+    as ambiguous (maps fused with centimetres of error blur repeated structure such as shelf rows). An
+    overlap that does not pin b (UNPINNED) pins it less on a smaller map: not that."""
+    return ((r.ambiguous and UNPINNED not in r.reason)
+            or (not r.accepted and SHARE_TOO_SMALL in r.reason and r.score >= params.min_score))
 
 
 def share(ag: Agreement, a: PreparedMap, b: PreparedMap) -> float:
@@ -301,6 +306,12 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     best_ag = agreement(a.summary, b.summary, best.transform)
     tm["subcell"] = time.perf_counter() - t0
     runner = next((s for s in scored[1:] if distinct(s[2].transform, best.transform)), None)
+    if runner is not None and params.refine:  # stepped as the strongest peak was: a fair margin
+        stepped = _cell_steps(a, b, runner[2].transform, params)
+        if stepped is not runner[2].transform:
+            ag = agreement(a.summary, b.summary, stepped)
+            runner = (ag.support(params.conflict_weight), ag,
+                      Candidate(stepped, runner[2].inliers, runner[2].source))
     runner_score = runner[1].score if runner else 0.0
     overlap = share(best_ag, a, b)
     reason = rejection(best_ag, best.inliers, overlap, params) or "accepted"
@@ -311,8 +322,8 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     if reason == "accepted":
         move, kept = loosest_move(a.summary, b.summary, best.transform, params.conflict_weight,
                                   params.pin_turn_deg, params.pin_slide_m)
-        if close_runner_up(kept, 1.0, params.min_margin):
-            reason = f"{AMBIGUOUS}: {move} keeps {kept:.0%} of the support; the overlap does not pin b"
+        if kept >= 1.0 - params.min_margin:
+            reason = f"{AMBIGUOUS}: {move} keeps {kept:.0%} of the support; {UNPINNED}"
     return MergeResult(reason == "accepted", best.transform, best.inliers, best_ag.score, best_ag.agree,
                        best_ag.conflicts, runner_score, reason, overlap, tm)
 

@@ -1,5 +1,6 @@
 """Every merging parameter in one frozen dataclass; `thesis_params()` reproduces chapter 8's defaults."""
 
+import math
 from dataclasses import dataclass, replace
 
 
@@ -143,14 +144,11 @@ class MergeParams:
     validation_max_points: int = 30000
     validation_min_height_m: float = 0.3
     """Validation samples occupied cells on vertical structure: runs of occupied cells straight above
-    one another at least this tall (at least two cells): 3 cells at 0.1 m, 2 at 0.2 m. A floor is
+    one another at least this tall, and at least two cells (validation_min_run): 3 cells at 0.1 m, 2
+    at 0.2 m. A floor is
     often two cells thick and a tilted one steps up a cell every few metres, so a run of two 0.1 m
     cells is no wall; outdoors, where few walls are seen, such floor cells were most of the samples
     and wrong fits that lay ground on ground validated (scripts/bench merge)."""
-
-    def validation_min_run(self, resolution: float) -> int:
-        """validation_min_height_m in cells of a map of this resolution."""
-        return max(2, int(round(self.validation_min_height_m / resolution)))
     min_score: float = 0.94
     """Agreement of overlapping known cells: agree / (agree + occupied-vs-free conflicts). Real flight
     maps carry drift: correct transforms score 0.94-1.0 there (0.977-0.988 in the daemons' demo
@@ -184,6 +182,10 @@ class MergeParams:
 
     def with_(self, **changes) -> "MergeParams":
         return replace(self, **changes)
+
+    def validation_min_run(self, resolution: float) -> int:
+        """validation_min_height_m in whole cells of a map of this resolution (rounded up), at least 2."""
+        return max(2, math.ceil(self.validation_min_height_m / resolution - 1e-9))
 
 
 def thesis_params() -> MergeParams:

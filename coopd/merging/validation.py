@@ -102,7 +102,7 @@ def occupied_indices(cells, threshold, min_run):
     return occupied, vertical
 
 
-def summarise(grid: OccupancyGrid, threshold: int, max_points: int, min_run: int = 2) -> MapSummary:
+def summarise(grid: OccupancyGrid, threshold: int, max_points: int, min_run: int) -> MapSummary:
     """Classes and occupied points of a grid, computed once per map; vertical structure is a run of at
     least min_run occupied cells."""
     occupied, vertical = occupied_indices(grid.cells, threshold, min_run)
@@ -161,7 +161,7 @@ def agreement(a: MapSummary, b: MapSummary, t_ab: np.ndarray) -> Agreement:
 
 
 def agreeing_points(a: MapSummary, b: MapSummary, t_ab: np.ndarray) -> np.ndarray:
-    """b's vertical-structure samples that t_ab lands next to an occupied cell of a (a's frame)."""
+    """b's vertical-structure samples that t_ab lands next to an occupied cell of a, in a's frame."""
     p = b.sample_m @ t_ab[:3, :3].T + t_ab[:3, 3]
     k = np.floor(p / a.resolution + 0.5).astype(np.int64) - a.offset
     inside = np.all((k >= 0) & (k < np.array(a.classes.shape)), axis=1)
@@ -182,15 +182,17 @@ def _turn_about(yaw_rad: float, centre: np.ndarray) -> np.ndarray:
 def loosest_move(a: MapSummary, b: MapSummary, t_ab: np.ndarray, conflict_weight: float, yaw_deg: float,
                  shift_m: float) -> tuple[str, float]:
     """The move of b away from t_ab that keeps the most of its support, and the share it keeps: b
-    turned by +-yaw_deg about the middle of where it agrees with a, or slid +-shift_m along either
-    horizontal axis of that agreement. An overlap that pins the transform loses its support under
-    every such move; one pole keeps it under any turn about itself and one straight wall under a
-    slide along it, so the maps do not say where b belongs, however well they agree."""
+    turned by +-yaw_deg about the middle of where the maps agree (the agreeing samples of both, in a's
+    frame), or slid +-shift_m along either horizontal axis of that agreement. An overlap that pins
+    the transform loses its support under every such move; one pole keeps it under any turn about
+    itself and one straight wall under a slide along it, so the maps do not say where b belongs,
+    however well they agree."""
     t_ab = np.ascontiguousarray(t_ab, dtype=np.float64)
     base = agreement(a, b, t_ab).support(conflict_weight)
-    pts = agreeing_points(a, b, t_ab)
+    from_a = agreeing_points(b, a, invert(t_ab))
+    pts = np.concatenate([agreeing_points(a, b, t_ab), from_a @ t_ab[:3, :3].T + t_ab[:3, 3]])
     if base <= 0 or len(pts) < 3:
-        return "none", 0.0
+        return "no agreement to move", 1.0  # nothing pins b
     centre = pts.mean(axis=0)
     _, axes = np.linalg.eigh(np.cov((pts[:, :2] - centre[:2]).T))
     moves = {f"a {yaw_deg:g} deg turn": _turn_about(np.radians(yaw_deg), centre),

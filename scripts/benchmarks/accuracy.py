@@ -23,7 +23,9 @@ Usage: scripts/benchmarks/accuracy.py [--worlds a,b] [--drones 3] [--seed 1] [--
 --depth-noise gives the replayed frames the emulated camera's range noise (SIGMA * depth^2, seeded; the
 truth samples stay those of the clean frames) in both mappers, --mapper changes the coopd replay's
 settings (e.g. miss_decrement=5); either names the outputs after it (out/bench/accuracy-noise0.01.json,
-accuracy-miss_decrement5.json), the flights stay in out/bench/accuracy/WORLD/.
+accuracy-miss_decrement5.json) but the flights are the run's own (out/bench/accuracy/WORLD/, or
+accuracy-ardupilot/WORLD/): use them with --tabulate, since a flight would replace the one the other
+tables were scored on.
 --autopilot ardupilot flies ArduCopter-personality drones (coopd builds its poses from
 LOCAL_POSITION_NED + ATTITUDE_QUATERNION) and writes out/bench/accuracy-ardupilot.{json,md} and
 out/bench/accuracy-ardupilot/WORLD/, beside the PX4 run's files.
@@ -337,17 +339,27 @@ def meets_goal(r: dict) -> bool:
     return all(r["goal"].values())
 
 
+FIXED_IN_REPLAY = ("resolution", "min_range", "max_range", "beyond_max_range", "growth")
+"""MapperConfig fields --mapper may not change: the truth samples and OctoMap use the same resolution
+and ranges, and the replay maps both beyond_max_range choices itself."""
+
+
 def mapper_settings(text: str) -> dict:
     """--mapper's KEY=VALUE,... as MapperConfig fields of their own types; ValueError or TypeError
-    on an unknown field or a value of the wrong kind."""
+    on an unknown or fixed field or a value of the wrong kind."""
     defaults = MapperConfig()
     out = {}
     for item in (i for i in text.split(",") if i):
         key, _, value = item.partition("=")
-        if not hasattr(defaults, key) or key == "growth":
-            raise ValueError(f"no mapper setting {key!r}")
+        if not hasattr(defaults, key) or key in FIXED_IN_REPLAY:
+            raise ValueError(f"no mapper setting {key!r} to change in the replay")
         kind = type(getattr(defaults, key))
-        out[key] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+        if kind is bool:
+            if value.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(f"{key} takes true or false, not {value!r}")
+            out[key] = value.lower() in ("true", "1")
+        else:
+            out[key] = kind(value)
     MapperConfig(**out)
     return out
 
@@ -380,6 +392,8 @@ def main() -> int:
         mapper = mapper_settings(a.mapper)
     except (ValueError, TypeError) as e:
         p.error(f"--mapper: {e}")
+    if a.depth_noise < 0:
+        p.error("--depth-noise must not be negative")
     flights = "accuracy" if a.autopilot == "px4" else f"accuracy-{a.autopilot}"
     name = flights + (f"-noise{a.depth_noise:g}" if a.depth_noise else "") + "".join(
         f"-{k}{v}" for k, v in mapper.items())

@@ -26,8 +26,8 @@ def test_classify_marks_free_unknown_and_cells_next_to_occupied():
 
 
 def test_true_transform_scores_high_and_wrong_ones_low(near_pair):
-    a = summarise(near_pair.a, 50, 20000)
-    b = summarise(near_pair.b, 50, 20000)
+    a = summarise(near_pair.a, 50, 20000, 3)
+    b = summarise(near_pair.b, 50, 20000, 3)
     good = agreement(a, b, near_pair.a_from_b)
     assert good.score > 0.95 and good.agree > 5000
     flipped = near_pair.a_from_b @ rigid(rotation_z(np.pi))
@@ -64,19 +64,26 @@ def test_occupied_and_vertical_cells_are_listed_as_argwhere_lists_them(near_pair
 
 def test_a_two_cell_thick_or_tilted_floor_is_not_vertical_structure():
     """A floor whose plane lies near a cell boundary fills two layers, and a floor tilted by a few
-    degrees steps up a cell every few metres: runs of two 0.1 m cells. A 0.3 m wall is structure."""
-    cells = np.full((60, 20, 12), 0, dtype=np.int8)
-    cells[:, :, 2:4] = 90  # a floor two cells thick
-    for x in range(60):  # a floor tilted by 3 degrees: one cell up every ~1.9 m
-        cells[x, 10:, 2:4] = 0
-        cells[x, 10:, 2 + x // 19] = 90
-    cells[30, :10, 4:7] = 90  # a wall three cells tall on the thick floor
+    degrees steps up a cell every few metres (two layers where it steps): runs of two 0.1 m cells,
+    which min_run 2 counted as walls. A wall three cells tall is structure."""
+    thick = np.zeros((60, 20, 12), dtype=np.int8)
+    thick[:, :, 2:4] = 90
+    tilted = np.zeros((60, 20, 12), dtype=np.int8)
+    for x in range(60):  # tilted by 3 degrees: one cell up every ~1.9 m, two layers at each step
+        z = 2 + x // 19
+        tilted[x, :, z] = 90
+        if x % 19 == 0 and x:
+            tilted[x, :, z - 1] = 90
     params = coopd_params()
     assert params.validation_min_run(0.1) == 3 and params.validation_min_run(0.2) == 2
-    _, vertical = occupied_indices(cells, 50, params.validation_min_run(0.1))
+    assert params.validation_min_run(0.12) == 3  # 0.36 m: at least 0.3 m, not 0.24
+    for floor in (thick, tilted):
+        assert len(occupied_indices(floor, 50, 2)[1]) > 0  # the old rule took them for walls
+        assert len(occupied_indices(floor, 50, 3)[1]) == 0
+    walled = thick.copy()
+    walled[30, :10, 4:7] = 90  # a wall three cells tall on the thick floor
+    _, vertical = occupied_indices(walled, 50, params.validation_min_run(0.1))
     assert len(vertical) > 0 and set(vertical[:, 0]) == {30}
-    _, stacked = occupied_indices(cells, 50, 2)
-    assert len(stacked) > 60 * 10 * 2  # every cell of the thick floor counted as a wall
 
 
 def _map(occupied_cells, shape=(80, 80, 16), offset=(-40, -40, -2)):
@@ -108,3 +115,15 @@ def test_one_pole_agrees_as_well_turned_and_one_wall_slid_but_a_corner_pins_the_
                        50, 20000, 3)
     name, kept = loosest_move(corner, corner, np.eye(4), 20.0, 10.0, 1.0)
     assert kept < 0.6
+
+
+def test_the_agreement_of_either_map_places_the_moves():
+    """b saw the wall too low to hold a sample of its own: a's samples that agree in b still show that
+    a slide along the wall keeps the support."""
+    a = summarise(_map([(slice(0, 80), 40, slice(2, 14))]), 50, 20000, 3)
+    low = _map([(slice(0, 80), 40, slice(2, 4))])
+    low.cells[:, :, 4:] = -1  # b saw nothing above its two cells of the wall
+    b = summarise(low, 50, 20000, 3)
+    assert len(b.sample_m) == 0 and agreement(a, b, np.eye(4)).agree > 0
+    name, kept = loosest_move(a, b, np.eye(4), 20.0, 10.0, 1.0)
+    assert "along" in name and kept >= 1 - coopd_params().min_margin

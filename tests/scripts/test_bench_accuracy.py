@@ -113,8 +113,9 @@ def test_range_noise_grows_with_depth_squared_and_leaves_no_return_alone():
 
 
 def test_mapper_settings_take_each_fields_own_type():
-    assert bench.mapper_settings("miss_decrement=5,beyond_max_range=drop,gap_fill=false") == {
-        "miss_decrement": 5, "beyond_max_range": "drop", "gap_fill": False}
-    for bad in ("nonsense=1", "miss_decrement=five"):
+    assert bench.mapper_settings("miss_decrement=5,traversal=exact,gap_fill=false") == {
+        "miss_decrement": 5, "traversal": "exact", "gap_fill": False}
+    for bad in ("nonsense=1", "miss_decrement=five", "gap_fill=flase", "max_range=10",
+                "beyond_max_range=drop"):
         with pytest.raises(ValueError):
             bench.mapper_settings(bad)
