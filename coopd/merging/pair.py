@@ -291,10 +291,12 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
         cands = [cands[i] for i in np.argsort(coarse)[::-1][: params.refine_candidates]]
     cands += [Candidate(np.asarray(t, dtype=np.float64), 0, "given") for t in known]  # always refined
     scored: list[tuple[float, Agreement, Candidate]] = []
+    stepped = None  # the strongest peak as refined and stepped
     for c in cands:
-        c = _refined(a, b, c, params, step=c is strongest)
-        ag = agreement(a.summary, b.summary, c.transform)
-        scored.append((ag.support(params.conflict_weight), ag, c))
+        refined = _refined(a, b, c, params, step=c is strongest)
+        stepped = refined if c is strongest else stepped
+        ag = agreement(a.summary, b.summary, refined.transform)
+        scored.append((ag.support(params.conflict_weight), ag, refined))
     tm["validate"] = time.perf_counter() - t0
     if not scored:
         return MergeResult(False, np.eye(4), 0, 0.0, 0, 0, 0.0, "no hypothesis (no correspondences)",
@@ -306,12 +308,12 @@ def merge_prepared(a: PreparedMap, b: PreparedMap, params: MergeParams,
     best_ag = agreement(a.summary, b.summary, best.transform)
     tm["subcell"] = time.perf_counter() - t0
     runner = next((s for s in scored[1:] if distinct(s[2].transform, best.transform)), None)
-    if runner is not None and params.refine:  # stepped as the strongest peak was: a fair margin
-        stepped = _cell_steps(a, b, runner[2].transform, params)
-        if stepped is not runner[2].transform:
-            ag = agreement(a.summary, b.summary, stepped)
+    if runner is not None and stepped is not None and scored[0][2] is stepped:
+        moved = _cell_steps(a, b, runner[2].transform, params)  # stepped as the winner was: a fair margin
+        if moved is not runner[2].transform:
+            ag = agreement(a.summary, b.summary, moved)
             runner = (ag.support(params.conflict_weight), ag,
-                      Candidate(stepped, runner[2].inliers, runner[2].source))
+                      Candidate(moved, runner[2].inliers, runner[2].source))
     runner_score = runner[1].score if runner else 0.0
     overlap = share(best_ag, a, b)
     reason = rejection(best_ag, best.inliers, overlap, params) or "accepted"

@@ -145,10 +145,9 @@ class MergeParams:
     validation_min_height_m: float = 0.3
     """Validation samples occupied cells on vertical structure: runs of occupied cells straight above
     one another at least this tall, and at least two cells (validation_min_run): 3 cells at 0.1 m, 2
-    at 0.2 m. A floor is
-    often two cells thick and a tilted one steps up a cell every few metres, so a run of two 0.1 m
-    cells is no wall; outdoors, where few walls are seen, such floor cells were most of the samples
-    and wrong fits that lay ground on ground validated (scripts/bench merge)."""
+    at 0.2 m. A floor is often two cells thick and a tilted one steps up a cell every few metres, so
+    a run of two 0.1 m cells is no wall; outdoors, where few walls are seen, such floor cells were
+    most of the samples and wrong fits that lay ground on ground validated (scripts/bench merge)."""
     min_score: float = 0.94
     """Agreement of overlapping known cells: agree / (agree + occupied-vs-free conflicts). Real flight
     maps carry drift: correct transforms score 0.94-1.0 there (0.977-0.988 in the daemons' demo

@@ -112,28 +112,42 @@ def summarise(grid: OccupancyGrid, threshold: int, max_points: int, min_run: int
     return MapSummary(classify(grid.cells, threshold), grid.offset, grid.resolution, pts, vert[::step].copy())
 
 
+@nb.njit(inline="always")
+def _landing(p, t, classes, offset, res):
+    """The class of the cell of a classified grid that point p moved by t lands in (UNSEEN outside)."""
+    x = t[0, 0] * p[0] + t[0, 1] * p[1] + t[0, 2] * p[2] + t[0, 3]
+    y = t[1, 0] * p[0] + t[1, 1] * p[1] + t[1, 2] * p[2] + t[1, 3]
+    z = t[2, 0] * p[0] + t[2, 1] * p[1] + t[2, 2] * p[2] + t[2, 3]
+    kx = int(np.floor(x / res + 0.5)) - offset[0]
+    ky = int(np.floor(y / res + 0.5)) - offset[1]
+    kz = int(np.floor(z / res + 0.5)) - offset[2]
+    mx, my, mz = classes.shape
+    if kx < 0 or ky < 0 or kz < 0 or kx >= mx or ky >= my or kz >= mz:
+        return UNSEEN
+    return classes[kx, ky, kz]
+
+
 @nb.njit(**_JIT)
 def _count(points, t, classes, offset, res):
     """(agreements, conflicts) of points moved by t into a classified grid."""
     agree = 0
     conflict = 0
-    mx, my, mz = classes.shape
     for i in range(points.shape[0]):
-        p = points[i]
-        x = t[0, 0] * p[0] + t[0, 1] * p[1] + t[0, 2] * p[2] + t[0, 3]
-        y = t[1, 0] * p[0] + t[1, 1] * p[1] + t[1, 2] * p[2] + t[1, 3]
-        z = t[2, 0] * p[0] + t[2, 1] * p[1] + t[2, 2] * p[2] + t[2, 3]
-        kx = int(np.floor(x / res + 0.5)) - offset[0]
-        ky = int(np.floor(y / res + 0.5)) - offset[1]
-        kz = int(np.floor(z / res + 0.5)) - offset[2]
-        if kx < 0 or ky < 0 or kz < 0 or kx >= mx or ky >= my or kz >= mz:
-            continue
-        c = classes[kx, ky, kz]
+        c = _landing(points[i], t, classes, offset, res)
         if c == NEAR_OCCUPIED:
             agree += 1
         elif c == FREE:
             conflict += 1
     return agree, conflict
+
+
+@nb.njit(**_JIT)
+def _agreeing(points, t, classes, offset, res):
+    """Which points moved by t land next to an occupied cell of a classified grid."""
+    out = np.zeros(points.shape[0], dtype=np.bool_)
+    for i in range(points.shape[0]):
+        out[i] = _landing(points[i], t, classes, offset, res) == NEAR_OCCUPIED
+    return out
 
 
 @dataclass(frozen=True)
@@ -162,12 +176,9 @@ def agreement(a: MapSummary, b: MapSummary, t_ab: np.ndarray) -> Agreement:
 
 def agreeing_points(a: MapSummary, b: MapSummary, t_ab: np.ndarray) -> np.ndarray:
     """b's vertical-structure samples that t_ab lands next to an occupied cell of a, in a's frame."""
-    p = b.sample_m @ t_ab[:3, :3].T + t_ab[:3, 3]
-    k = np.floor(p / a.resolution + 0.5).astype(np.int64) - a.offset
-    inside = np.all((k >= 0) & (k < np.array(a.classes.shape)), axis=1)
-    near = np.zeros(len(p), dtype=bool)
-    near[inside] = a.classes[tuple(k[inside].T)] == NEAR_OCCUPIED
-    return p[near]
+    t_ab = np.ascontiguousarray(t_ab, dtype=np.float64)
+    near = _agreeing(b.sample_m, t_ab, a.classes, a.offset, a.resolution)
+    return b.sample_m[near] @ t_ab[:3, :3].T + t_ab[:3, 3]
 
 
 def _turn_about(yaw_rad: float, centre: np.ndarray) -> np.ndarray:
