@@ -134,3 +134,29 @@ def count_classes(flat, threshold):
         elif v >= P_MIN:
             free += 1
     return unknown, inaccessible, free, occupied
+
+
+@nb.njit(**_JIT)
+def free_side(cells, threshold, x, y, z):
+    """Unit direction from an occupied cell towards its known-free neighbours (26), or zeros when the
+    free cells around it do not point one way (none, or all round): the side a map saw its surface
+    from."""
+    mx, my, mz = cells.shape
+    n = np.zeros(3)
+    for dx in range(-1, 2):
+        for dy in range(-1, 2):
+            for dz in range(-1, 2):
+                a, b, c = x + dx, y + dy, z + dz
+                if (dx == 0 and dy == 0 and dz == 0) or a < 0 or b < 0 or c < 0 or a >= mx or b >= my \
+                        or c >= mz:
+                    continue
+                v = cells[a, b, c]
+                if 0 <= v < threshold:
+                    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+                    n[0] += dx * inv
+                    n[1] += dy * inv
+                    n[2] += dz * inv
+    length = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    if length < 1.0:
+        return np.zeros(3)
+    return n / length

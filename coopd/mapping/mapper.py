@@ -40,6 +40,10 @@ class MapperConfig:
     """m_I-: taken from cells the ray passes through."""
     hit_depth: float = 0.0
     """m_d, metres: cells entered within this distance of the measured point count as hits."""
+    graze_deg: float = 20.0
+    """A ray running within this angle of the surface in an occupied cell (the plane across the
+    cell's free side) does not clear it: it passes through the free part of a cell that holds a
+    floor or wall seen edge-on. 0: every ray clears every cell it passes, as HIMM reads."""
     traversal: str = "bresenham"
     """Ray traversal: "bresenham" (thesis, one cell per major-axis step) or "exact" (every cell
     the ray crosses)."""
@@ -65,6 +69,8 @@ class MapperConfig:
             problems.append("hit_increment and miss_decrement must be in 1..100")
         if not (0 <= self.hit_depth <= 10):
             problems.append(f"hit_depth {self.hit_depth} m outside 0..10")
+        if not (0 <= self.graze_deg <= 60):
+            problems.append(f"graze_deg {self.graze_deg} outside 0..60")
         if self.beyond_max_range not in BEYOND_MAX_RANGE:
             problems.append(f"beyond_max_range {self.beyond_max_range!r} is not one of "
                             f"{list(BEYOND_MAX_RANGE)}")
@@ -121,6 +127,7 @@ class Mapper:
         self._pool = ThreadPoolExecutor(config.threads, "coopd-ray") if config.threads > 1 else None
         self._slopes_for: Intrinsics | None = None
         self._slopes = (np.zeros(0), np.zeros(0))
+        self._graze_sin = float(np.sin(np.radians(config.graze_deg)))
 
     def close(self) -> None:
         if self._pool is not None:
@@ -199,7 +206,8 @@ class Mapper:
             shape = np.array(grid.shape, dtype=np.int64)
             raycast.trace_rows(depth, scale, sx, sy, 0, depth.shape[0], rot, origin_c, inv_res,
                                cfg.min_range, cfg.max_range, cfg.far_limit, cfg.hit_depth, shape, grid.flat,
-                               raycast.MODE_PER_RAY, _TRAVERSALS[cfg.traversal], inc, dec, counts[0])
+                               raycast.MODE_PER_RAY, _TRAVERSALS[cfg.traversal], inc, dec, grid.cells,
+                               np.zeros(3, dtype=np.int64), self._graze_sin, counts[0])
             updated = int(counts[0, raycast.COUNT_VISITS])
             hits = int(counts[0, raycast.COUNT_RAYS] - counts[0, raycast.COUNT_TRUNCATED])
         filled = 0
@@ -228,7 +236,8 @@ class Mapper:
         def trace(k):
             raycast.trace_rows(depth, scale, sx, sy, rows[k], rows[k + 1], rot, origin_c, inv_res,
                                cfg.min_range, cfg.max_range, cfg.far_limit, cfg.hit_depth, shape,
-                               marks[k], raycast.MODE_MARK, _TRAVERSALS[cfg.traversal], 0, 0, counts[k])
+                               marks[k], raycast.MODE_MARK, _TRAVERSALS[cfg.traversal], 0, 0, self.grid.cells,
+                               box_lo, self._graze_sin, counts[k])
 
         xs = np.linspace(0, int(box_shape[0]), n_threads + 1).astype(np.int64)
 

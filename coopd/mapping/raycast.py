@@ -24,7 +24,8 @@ import numpy as np
 
 from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
-from ..grid.cells import INACCESSIBLE, P_MAX, P_MIN, P_PRIOR, UNKNOWN
+from ..grid.cells import INACCESSIBLE, OCCUPIED_THRESHOLD, P_MAX, P_MIN, P_PRIOR, UNKNOWN
+from ..grid.kernels import free_side
 
 _JIT = {"nogil": True, "cache": KERNEL_CACHE, "boundscheck": False, "error_model": "numpy"}
 
@@ -96,6 +97,27 @@ def _visit(target, idx, is_hit, mode, inc, dec):
 
 
 @nb.njit(inline="always")
+def _grazes(cells, box_lo, ix, iy, iz, ux, uy, uz, graze_sin):
+    """Whether a ray along the unit (ux, uy, uz) only grazes the surface in the grid cell of box cell
+    (ix, iy, iz): the cell is occupied and the ray runs within asin(graze_sin) of its surface (the
+    plane across its free-side normal). Such a ray passes through the free part of a cell that holds
+    a surface (a floor seen edge-on from a drone on the ground) and is no evidence that the cell is
+    empty. A cell with no free-side normal (free all round, as noise in free space) is not spared."""
+    if graze_sin <= 0.0:
+        return False
+    gx, gy, gz = ix + box_lo[0], iy + box_lo[1], iz + box_lo[2]
+    mx, my, mz = cells.shape
+    if gx < 0 or gy < 0 or gz < 0 or gx >= mx or gy >= my or gz >= mz:
+        return False
+    if cells[gx, gy, gz] < OCCUPIED_THRESHOLD:
+        return False
+    n = free_side(cells, OCCUPIED_THRESHOLD, gx, gy, gz)
+    if n[0] == 0.0 and n[1] == 0.0 and n[2] == 0.0:
+        return False
+    return abs(n[0] * ux + n[1] * uy + n[2] * uz) < graze_sin
+
+
+@nb.njit(inline="always")
 def _axis_setup(a, b):
     """Step, cells to go, next boundary crossing (ray parameter t) and t per cell along one axis."""
     i = np.floor(a)
@@ -109,43 +131,55 @@ def _axis_setup(a, b):
 
 
 @nb.njit(inline="always")
-def _walk(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode, inc, dec):
+def _walk(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode, inc, dec, cells, box_lo, graze_sin):
     """Visit every cell the segment a→b crosses; cells entered after hit_from_t (and the end
-    cell) are hits when `hit`, all others misses. Coordinates are continuous cell units."""
+    cell) are hits when `hit`, all others misses, except the occupied cells the segment only grazes
+    (_grazes), which it leaves alone. Coordinates are continuous cell units."""
     sxs, rx, tmx, tdx = _axis_setup(ax, bx)
     sys_, ry, tmy, tdy = _axis_setup(ay, by)
     szs, rz, tmz, tdz = _axis_setup(az, bz)
     stride_x = shape[1] * shape[2]
     stride_y = shape[2]
-    idx = (int(np.floor(ax)) * shape[1] + int(np.floor(ay))) * shape[2] + int(np.floor(az))
+    ix, iy, iz = int(np.floor(ax)), int(np.floor(ay)), int(np.floor(az))
+    idx = (ix * shape[1] + iy) * shape[2] + iz
+    length = max(np.sqrt((bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2), 1e-12)
+    ux, uy, uz = (bx - ax) / length, (by - ay) / length, (bz - az) / length
     t_enter = 0.0
     n_steps = rx + ry + rz
     for _ in range(n_steps):
-        _visit(target, idx, hit and t_enter > hit_from_t, mode, inc, dec)
+        is_hit = hit and t_enter > hit_from_t
+        if is_hit or not _grazes(cells, box_lo, ix, iy, iz, ux, uy, uz, graze_sin):
+            _visit(target, idx, is_hit, mode, inc, dec)
         if rx > 0 and (ry == 0 or tmx <= tmy) and (rz == 0 or tmx <= tmz):
             t_enter = tmx
             tmx += tdx
             idx += sxs * stride_x
+            ix += sxs
             rx -= 1
         elif ry > 0 and (rz == 0 or tmy <= tmz):
             t_enter = tmy
             tmy += tdy
             idx += sys_ * stride_y
+            iy += sys_
             ry -= 1
         else:
             t_enter = tmz
             tmz += tdz
             idx += szs
+            iz += szs
             rz -= 1
     _visit(target, idx, hit, mode, inc, dec)
     return n_steps + 1
 
 
 @nb.njit(inline="always")
-def _walk_bresenham(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode, inc, dec):
+def _walk_bresenham(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode, inc, dec, cells, box_lo,
+                    graze_sin):
     """3D Bresenham between the centres of the cells holding a and b: one cell per step of the
     axis with the largest extent, minor axes rounded to the nearest cell (integer error terms,
-    branch-free). Cells past hit_from_t (and the end cell) are hits when `hit`."""
+    branch-free). Cells past hit_from_t (and the end cell) are hits when `hit`; a miss leaves the
+    occupied cells the line between those centres only grazes alone (_grazes: the path and what it
+    does depend on the two cells alone, so rays ending in one cell share it)."""
     x0, y0, z0 = int(np.floor(ax)), int(np.floor(ay)), int(np.floor(az))
     dx, dy, dz = int(np.floor(bx)) - x0, int(np.floor(by)) - y0, int(np.floor(bz)) - z0
     adx, ady, adz = abs(dx), abs(dy), abs(dz)
@@ -156,16 +190,23 @@ def _walk_bresenham(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode
     if n == 0:
         _visit(target, idx, hit, mode, inc, dec)
         return 1
-    sx = stride_x if dx > 0 else -stride_x
-    sy = stride_y if dy > 0 else -stride_y
-    sz = 1 if dz > 0 else -1
+    ux = 1 if dx > 0 else -1
+    uy = 1 if dy > 0 else -1
+    uz = 1 if dz > 0 else -1
+    sx = ux * stride_x
+    sy = uy * stride_y
+    sz = uz
+    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+    lx, ly, lz = dx * inv, dy * inv, dz * inv
     n2 = 2 * n
     # Offset along an axis after k steps is round(k * |d| / n): accumulate 2|d| per step from n,
     # and move one cell each time the accumulator passes 2n (at most once per step, |d| <= n).
     ex, ey, ez = n, n, n
     first_hit = int(np.floor(hit_from_t * n)) + 1 if hit else n + 1
+    ix, iy, iz = x0, y0, z0
     for k in range(n):
-        _visit(target, idx, k >= first_hit, mode, inc, dec)
+        if k >= first_hit or not _grazes(cells, box_lo, ix, iy, iz, lx, ly, lz, graze_sin):
+            _visit(target, idx, k >= first_hit, mode, inc, dec)
         ex += 2 * adx
         ey += 2 * ady
         ez += 2 * adz
@@ -173,6 +214,9 @@ def _walk_bresenham(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode
         cy = ey >= n2
         cz = ez >= n2
         idx += cx * sx + cy * sy + cz * sz
+        ix += cx * ux
+        iy += cy * uy
+        iz += cz * uz
         ex -= cx * n2
         ey -= cy * n2
         ez -= cz * n2
@@ -183,10 +227,12 @@ def _walk_bresenham(target, shape, ax, ay, az, bx, by, bz, hit, hit_from_t, mode
 @nb.njit(**_JIT)
 def trace_rows(depth, scale, slope_x, slope_y, row_lo, row_hi, rot, origin_c, inv_res,
                min_range, max_range, far_limit, hit_depth, shape, target, mode, traversal, inc, dec,
-               counts):
+               cells, box_lo, graze_sin, counts):
     """Walk the rays of image rows [row_lo, row_hi) into `target` (a flat box of `shape` cells;
     origin_c is the sensor origin in that box's continuous cell coordinates). Depths in
-    min_range..far_limit are rays; those longer than max_range are cut there, all misses."""
+    min_range..far_limit are rays; those longer than max_range are cut there, all misses. cells is
+    the grid as it stood before the frame, box cell k being its cell k + box_lo: a ray leaves alone
+    the occupied cells it only grazes (graze_sin, _grazes; 0 clears them like any other)."""
     w = depth.shape[1]
     ox, oy, oz = origin_c[0], origin_c[1], origin_c[2]
     for v in range(row_lo, row_hi):
@@ -221,10 +267,10 @@ def trace_rows(depth, scale, slope_x, slope_y, row_lo, row_hi, rot, origin_c, in
                 target[end] |= MARK_WALKED
             if traversal == TRAVERSAL_BRESENHAM:
                 counts[COUNT_VISITS] += _walk_bresenham(target, shape, ox, oy, oz, bx, by, bz, hit,
-                                                        hit_from_t, mode, inc, dec)
+                                                        hit_from_t, mode, inc, dec, cells, box_lo, graze_sin)
             else:
                 counts[COUNT_VISITS] += _walk(target, shape, ox, oy, oz, bx, by, bz, hit, hit_from_t,
-                                              mode, inc, dec)
+                                              mode, inc, dec, cells, box_lo, graze_sin)
             counts[COUNT_RAYS] += 1
 
 

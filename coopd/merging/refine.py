@@ -21,6 +21,7 @@ import numpy as np
 from coopd.kernel_cache import CACHE as KERNEL_CACHE
 
 from ..geometry import apply
+from ..grid.kernels import free_side
 from .mtm import kabsch
 
 _JIT = {"nogil": True, "cache": KERNEL_CACHE}
@@ -281,31 +282,6 @@ FIELD_SCALE = 64
 
 
 @nb.njit(**_JIT)
-def _free_side(cells, threshold, x, y, z):
-    """Unit direction from an occupied cell towards its known-free neighbours (26), or zeros when the
-    free cells around it do not point one way (none, or all round)."""
-    mx, my, mz = cells.shape
-    n = np.zeros(3)
-    for dx in range(-1, 2):
-        for dy in range(-1, 2):
-            for dz in range(-1, 2):
-                a, b, c = x + dx, y + dy, z + dz
-                if (dx == 0 and dy == 0 and dz == 0) or a < 0 or b < 0 or c < 0 or a >= mx or b >= my \
-                        or c >= mz:
-                    continue
-                v = cells[a, b, c]
-                if 0 <= v < threshold:
-                    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
-                    n[0] += dx * inv
-                    n[1] += dy * inv
-                    n[2] += dz * inv
-    length = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-    if length < 1.0:
-        return np.zeros(3)
-    return n / length
-
-
-@nb.njit(**_JIT)
 def free_sides(cells, threshold, offset, res, points):
     """Free-side normal (unit, or zeros) of the occupied cell under each point (metres, grid frame)."""
     out = np.zeros((points.shape[0], 3))
@@ -315,7 +291,7 @@ def free_sides(cells, threshold, offset, res, points):
         y = int(np.floor(points[p, 1] / res + 0.5)) - offset[1]
         z = int(np.floor(points[p, 2] / res + 0.5)) - offset[2]
         if 0 <= x < mx and 0 <= y < my and 0 <= z < mz and cells[x, y, z] >= threshold:
-            out[p] = _free_side(cells, threshold, x, y, z)
+            out[p] = free_side(cells, threshold, x, y, z)
     return out
 
 
@@ -343,7 +319,7 @@ def facing_fields(cells, threshold, lo, shape, max_cells):
             for z in range(max(0, lo[2] - r), min(mz, lo[2] + shape[2] + r)):
                 if cells[x, y, z] < threshold:
                     continue
-                n = _free_side(cells, threshold, x, y, z)
+                n = free_side(cells, threshold, x, y, z)
                 for a in range(3):
                     if n[a] >= FACING_MIN:
                         side = 2 * a
@@ -453,7 +429,7 @@ def facing_bits(cells, threshold):
             for z in range(mz):
                 if cells[x, y, z] < threshold:
                     continue
-                n = _free_side(cells, threshold, x, y, z)
+                n = free_side(cells, threshold, x, y, z)
                 bits = 0
                 for a in range(3):
                     if n[a] >= FACING_MIN:

@@ -41,13 +41,15 @@ def valid_points(depth, intr, pose):
     return pts[ok] @ pose.rotation().T + pose.position
 
 
-def time_coopd(intr, frames, threads, passes):
-    """Best-of-passes wall time to integrate all frames into a fresh grid; per-frame times."""
+def time_coopd(intr, frames, threads, passes, **settings):
+    """Best-of-passes wall time to integrate all frames into a fresh grid; per-frame times. settings:
+    MapperConfig fields other than the bench's own."""
     best, best_frames, grid = None, None, None
+    config = MapperConfig(resolution=RES, min_range=MIN_R, max_range=MAX_R, threads=threads, **settings)
     for _ in range(passes):
-        mapper = Mapper(MapperConfig(resolution=RES, min_range=MIN_R, max_range=MAX_R, threads=threads))
+        mapper = Mapper(config)
         mapper.integrate(frames[0][0], intr, frames[0][1])          # warm caches, not timed
-        mapper = Mapper(MapperConfig(resolution=RES, min_range=MIN_R, max_range=MAX_R, threads=threads))
+        mapper = Mapper(config)
         per = []
         rays = 0
         t0 = time.perf_counter()
@@ -125,6 +127,7 @@ def main():
         intr, frames = make_frames(width, height, stations, yaws)
         t1, per1, rays, grid1 = time_coopd(intr, frames, 1, passes)
         t2, per2, _, grid2 = time_coopd(intr, frames, 2, passes)
+        t0, _, _, _ = time_coopd(intr, frames, 1, passes, graze_deg=0.0)
         o1 = time_octomap(frames, intr, 1, passes)
         o2 = time_octomap(frames, intr, 2, passes)
         def ms(seconds):
@@ -142,6 +145,8 @@ def main():
             "ratio_1thread_vs_octomap_1thread": round(o1 / t1, 2),
             "ratio_2threads_vs_octomap_1thread": round(o1 / t2, 2),
             "ratio_2threads_vs_octomap_2threads": round(o2 / t2, 2),
+            # what sparing grazed surface cells (MapperConfig.graze_deg) costs: > 1 is slower
+            "ratio_1thread_vs_no_graze_guard": round(t1 / t0, 2),
         }
         results["sizes"].append(entry)
     results["jit"] = jit_times()

@@ -33,16 +33,20 @@ def scene():
     return room_scene(0)
 
 
-def test_accuracy_with_perfect_poses(scene):
-    mapper, seen = _fly(MapperConfig(), scene, survey_poses())
+@pytest.mark.parametrize("graze_deg", [20.0, 0.0])
+def test_accuracy_with_perfect_poses(scene, graze_deg):
+    mapper, seen = _fly(MapperConfig(graze_deg=graze_deg), scene, survey_poses())
     acc = occupied_accuracy(mapper.grid, scene, seen)
+    print(f"perfect poses, graze_deg {graze_deg}: P {acc['precision']:.3f} R {acc['recall']:.3f}")
     assert acc["precision"] >= 0.95 and acc["recall"] >= 0.95, acc
     assert acc["free_accuracy"] >= 0.99, acc
 
 
-def test_accuracy_with_depth_noise(scene):
-    mapper, seen = _fly(MapperConfig(), scene, survey_poses(), noise=0.01)
+@pytest.mark.parametrize("graze_deg", [20.0, 0.0])
+def test_accuracy_with_depth_noise(scene, graze_deg):
+    mapper, seen = _fly(MapperConfig(graze_deg=graze_deg), scene, survey_poses(), noise=0.01)
     acc = occupied_accuracy(mapper.grid, scene, seen)
+    print(f"1 % depth noise, graze_deg {graze_deg}: P {acc['precision']:.3f} R {acc['recall']:.3f}")
     assert acc["precision"] >= 0.93 and acc["recall"] >= 0.95, acc
 
 
@@ -72,6 +76,45 @@ def test_shared_path_shortcut_is_exact(scene):
     fast, _ = _fly(MapperConfig(hit_depth=0.0), scene, poses)
     slow, _ = _fly(MapperConfig(hit_depth=1e-9), scene, poses)
     assert fast.grid.same_cells(slow.grid)
+
+
+def _floor_cells(grid) -> int:
+    """Occupied cells of the layer that holds the room's floor plane (z = 0)."""
+    keys = np.argwhere(grid.cells >= 50) + grid.offset
+    return int(np.sum(keys[:, 2] == 0))
+
+
+@pytest.mark.parametrize("graze_deg, kept_at_least, kept_at_most", [(20.0, 0.99, 1.0), (0.0, 0.0, 0.9)])
+def test_a_ray_grazing_the_floor_leaves_it_occupied(scene, graze_deg, kept_at_least, kept_at_most):
+    """A drone on the ground: its camera, 3 cm over the floor, looks level across the room after the
+    floor was mapped from 1.2 m. Its rays run through the free part of the floor's cells; they spare
+    them (graze_deg) but clear them when every ray clears every cell it passes (graze_deg 0)."""
+    mapper, _ = _fly(MapperConfig(graze_deg=graze_deg), scene, survey_poses())
+    before = _floor_cells(mapper.grid)
+    for k in range(12):
+        mapper.integrate(render_depth(scene, INTR, camera_pose([0.0, 0.0, 0.03], 2 * np.pi * k / 12)),
+                         INTR, camera_pose([0.0, 0.0, 0.03], 2 * np.pi * k / 12))
+    kept = _floor_cells(mapper.grid) / before
+    assert before > 1000 and kept_at_least <= kept <= kept_at_most, (before, kept)
+
+
+def test_noise_in_free_space_is_cleared_by_any_ray(scene):
+    """An occupied cell with free space all round has no surface to graze: rays passing it in any
+    direction clear it as before."""
+    mapper, _ = _fly(MapperConfig(), scene, survey_poses(2, 6))
+    speck = np.array([[1.5, 0.3, 1.2]])
+    key = mapper.grid.keys_of(speck)[0] - mapper.grid.offset
+    assert 0 <= mapper.grid.cells[tuple(key)] < 50
+    mapper.grid.cells[tuple(key)] = 60  # one hit on a fresh cell
+    for k in range(12):
+        pose = camera_pose([0.0, 0.0, 1.2], 2 * np.pi * k / 12)
+        mapper.integrate(render_depth(scene, INTR, pose), INTR, pose)
+    assert mapper.grid.values_at(speck)[0] < 50
+
+
+def test_graze_angle_is_checked():
+    with pytest.raises(ValueError, match="graze_deg"):
+        MapperConfig(graze_deg=75.0)
 
 
 def test_single_wall_geometry():
