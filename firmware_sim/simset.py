@@ -7,7 +7,8 @@ reporting frame translated so the first reported pose is the origin, as the daem
 so whatever drift bent into the map is what merging has to live with. Maps are cached as .npz.
 """
 
-from dataclasses import dataclass, replace
+import hashlib
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -142,14 +143,22 @@ def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s
     return out
 
 
+def mapper_tag(config: MapperConfig | None = None) -> str:
+    """A short digest of the mapper settings (thread count aside: any count maps alike): flights mapped
+    before the mapper's defaults changed are cached under another name, never read as today's."""
+    settings = {k: v for k, v in asdict(config or MapperConfig()).items() if k != "threads"}
+    return hashlib.sha256(repr(sorted(settings.items())).encode()).hexdigest()[:8]
+
+
 def cache_path(world_name: str, seed: int, n_vehicles: int, laps: int, ground_s: float, pose_delay_s: float,
                cache_dir: Path = CACHE_DIR, camera_rate_hz: float | None = None) -> Path:
-    """Where flight_maps keeps one flight's maps (a camera rate other than the default is in the name)."""
+    """Where flight_maps keeps one flight's maps (a camera rate other than the default is in the name,
+    and the mapper's settings, mapper_tag, always are)."""
     rate = camera(camera_rate_hz).rate_hz
     suffix = ("" if laps == 1 else f"_l{laps}") + ("" if ground_s == 0 else f"_g{ground_s:g}") + \
         ("" if pose_delay_s == 0 else f"_d{pose_delay_s:g}") + \
         ("" if rate == camera().rate_hz else f"_c{rate:g}")
-    return Path(cache_dir) / f"{world_name}_s{seed}_n{n_vehicles}{suffix}.npz"
+    return Path(cache_dir) / f"{world_name}_s{seed}_n{n_vehicles}{suffix}_m{mapper_tag()}.npz"
 
 
 def save(maps: list[FlightMap], path: Path) -> None:

@@ -1,9 +1,11 @@
-"""simset's camera rate: it reaches the emulated cameras, and a flight at another rate is cached apart."""
+"""simset's camera rate: it reaches the emulated cameras, and a flight at another rate (or mapped with
+other settings) is cached apart."""
 
 from pathlib import Path
 
 import pytest
 
+from coopd.mapping import MapperConfig
 from firmware_sim import simset
 
 
@@ -11,9 +13,17 @@ def test_cache_path_names_a_camera_rate_other_than_the_default():
     def path(rate=None):
         return simset.cache_path("bookstore", 1, 30, 1, 0.0, 0.0, Path("c"), rate)
 
-    assert path() == Path("c/bookstore_s1_n30.npz")
+    tag = simset.mapper_tag()
+    assert path() == Path(f"c/bookstore_s1_n30_m{tag}.npz")
     assert path(simset.camera().rate_hz) == path()
-    assert path(2.5) == Path("c/bookstore_s1_n30_c2.5.npz")
+    assert path(2.5) == Path(f"c/bookstore_s1_n30_c2.5_m{tag}.npz")
+
+
+def test_flights_mapped_with_other_mapper_settings_are_cached_apart():
+    """A cache made before the mapper's defaults changed must not pass for today's flights."""
+    assert simset.mapper_tag() == simset.mapper_tag(MapperConfig(threads=4))
+    assert simset.mapper_tag() != simset.mapper_tag(MapperConfig(graze_deg=0.0))
+    assert simset.mapper_tag() != simset.mapper_tag(MapperConfig(miss_decrement=14))
 
 
 @pytest.mark.parametrize("rate", [0.0, -1.0, float("nan"), 5000.0])
