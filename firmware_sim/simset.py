@@ -15,7 +15,7 @@ import numpy as np
 
 from coopd.geometry import invert, matrix_to_quat, rigid
 from coopd.grid import OccupancyGrid
-from coopd.mapping import CameraMount, Intrinsics, Mapper, MapperConfig, Pose
+from coopd.mapping import CameraMount, Intrinsics, Mapper, MapperConfig, Pose, raycast
 
 WORLDS = ("maze", "small_house", "small_warehouse", "bookstore", "hospital", "racetrack")
 CACHE_DIR = Path("out/simset")
@@ -144,10 +144,12 @@ def fly(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s
 
 
 def mapper_tag(config: MapperConfig | None = None) -> str:
-    """A short digest of the mapper settings (thread count aside: any count maps alike): flights mapped
-    before the mapper's defaults changed are cached under another name, never read as today's."""
+    """A short digest of the mapper settings (thread count aside: any count maps alike) and of its ray
+    casting code: flights mapped before the mapper changed are cached under another name, never read
+    as today's."""
     settings = {k: v for k, v in asdict(config or MapperConfig()).items() if k != "threads"}
-    return hashlib.sha256(repr(sorted(settings.items())).encode()).hexdigest()[:8]
+    code = Path(raycast.__file__).read_bytes()
+    return hashlib.sha256(repr(sorted(settings.items())).encode() + code).hexdigest()[:8]
 
 
 def cache_path(world_name: str, seed: int, n_vehicles: int, laps: int, ground_s: float, pose_delay_s: float,

@@ -41,9 +41,10 @@ class MapperConfig:
     hit_depth: float = 0.0
     """m_d, metres: cells entered within this distance of the measured point count as hits."""
     graze_deg: float = 20.0
-    """A ray running within this angle of the surface in an occupied cell (the plane across the
-    cell's free side) does not clear it: it passes through the free part of a cell that holds a
-    floor or wall seen edge-on. 0: every ray clears every cell it passes, as HIMM reads."""
+    """A ray running within this angle of the level surface in an occupied cell (a floor, ceiling or
+    table top: the plane across the cell's free side) does not clear it: it passes through the free
+    part of a cell that holds a floor seen edge-on. Walls are cleared as before. 0: every ray clears
+    every cell it passes, as HIMM reads."""
     traversal: str = "bresenham"
     """Ray traversal: "bresenham" (thesis, one cell per major-axis step) or "exact" (every cell
     the ray crosses)."""
