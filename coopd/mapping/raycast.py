@@ -17,6 +17,9 @@ Two ways to apply HIMM along the rays:
   then each marked cell gets one HIMM update. Rays can be split among threads, each with its own
   scratch, and the result is identical to one thread's.
 - per-ray mode (the thesis' literal reading): each ray updates the grid as it walks. One thread.
+
+In both, a miss spares an occupied cell of a floor, ceiling or table top that the ray only grazes
+(_grazes, MapperConfig.graze_deg): the ray crosses the free part of a cell that holds the surface.
 """
 
 import numba as nb
