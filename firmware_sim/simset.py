@@ -153,14 +153,15 @@ def mapper_tag(config: MapperConfig | None = None) -> str:
 
 
 def cache_path(world_name: str, seed: int, n_vehicles: int, laps: int, ground_s: float, pose_delay_s: float,
-               cache_dir: Path = CACHE_DIR, camera_rate_hz: float | None = None) -> Path:
+               cache_dir: Path = CACHE_DIR, camera_rate_hz: float | None = None,
+               mapper: MapperConfig | None = None) -> Path:
     """Where flight_maps keeps one flight's maps (a camera rate other than the default is in the name,
     and the mapper's settings, mapper_tag, always are)."""
     rate = camera(camera_rate_hz).rate_hz
     suffix = ("" if laps == 1 else f"_l{laps}") + ("" if ground_s == 0 else f"_g{ground_s:g}") + \
         ("" if pose_delay_s == 0 else f"_d{pose_delay_s:g}") + \
         ("" if rate == camera().rate_hz else f"_c{rate:g}")
-    return Path(cache_dir) / f"{world_name}_s{seed}_n{n_vehicles}{suffix}_m{mapper_tag()}.npz"
+    return Path(cache_dir) / f"{world_name}_s{seed}_n{n_vehicles}{suffix}_m{mapper_tag(mapper)}.npz"
 
 
 def save(maps: list[FlightMap], path: Path) -> None:
@@ -192,12 +193,15 @@ def load(path: Path, world_name: str, seed: int) -> list[FlightMap]:
 
 def flight_maps(world_name: str, seed: int, n_vehicles: int = 3, laps: int = 1, ground_s: float = 0.0,
                 pose_delay_s: float = 0.0, cache_dir: Path = CACHE_DIR,
-                camera_rate_hz: float | None = None) -> list[FlightMap]:
-    """Cached fly(): the maps of one world and seed, flown once and read back afterwards."""
-    path = cache_path(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, cache_dir, camera_rate_hz)
+                camera_rate_hz: float | None = None, mapper: MapperConfig | None = None) -> list[FlightMap]:
+    """Cached fly(): the maps of one world and seed, flown once and read back afterwards (mapper: the
+    drones' mapper settings, defaults when None)."""
+    path = cache_path(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, cache_dir, camera_rate_hz,
+                      mapper)
     if path.exists():
         return load(path, world_name, seed)
-    maps = fly(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, camera_rate_hz=camera_rate_hz)
+    maps = fly(world_name, seed, n_vehicles, laps, ground_s, pose_delay_s, config=mapper,
+               camera_rate_hz=camera_rate_hz)
     save(maps, path)
     return maps
 

@@ -49,8 +49,7 @@ LEVEL_MIN = 0.7
 """A ray spares only the cells of level surfaces (floors, ceilings, table tops: free side within 45
 degrees of vertical) that it grazes. Drones fly parallel to those and see them edge-on all the time;
 a wall seen edge-on down a corridor is cleared as before, so a wall that odometry drift mapped twice,
-a few centimetres apart, does not stay twice (scripts/bench merge_sim --worlds hospital: its corridor
-maps merge right in 5 of 12 pairs; 2 of 12 when walls were spared too, 6 of 12 with no guard)."""
+a few centimetres apart, does not stay twice (docs/mapping.md, "Rays that graze a surface")."""
 
 COUNT_RAYS = 0
 COUNT_INVALID = 1

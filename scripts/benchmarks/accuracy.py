@@ -44,6 +44,9 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts" / "benchmarks"))
+
+from _overrides import overrides  # noqa: E402
 
 from coopd.geometry import matrix_to_quat, quat_to_matrix  # noqa: E402
 from coopd.io import load_cmap  # noqa: E402
@@ -347,19 +350,7 @@ and ranges, and the replay maps both beyond_max_range choices itself."""
 def mapper_settings(text: str) -> dict:
     """--mapper's KEY=VALUE,... as MapperConfig fields of their own types; ValueError or TypeError
     on an unknown or fixed field or a value of the wrong kind."""
-    defaults = MapperConfig()
-    out = {}
-    for item in (i for i in text.split(",") if i):
-        key, _, value = item.partition("=")
-        if not hasattr(defaults, key) or key in FIXED_IN_REPLAY:
-            raise ValueError(f"no mapper setting {key!r} to change in the replay")
-        kind = type(getattr(defaults, key))
-        if kind is bool:
-            if value.lower() not in ("true", "false", "1", "0"):
-                raise ValueError(f"{key} takes true or false, not {value!r}")
-            out[key] = value.lower() in ("true", "1")
-        else:
-            out[key] = kind(value)
+    out = overrides(text, MapperConfig(), FIXED_IN_REPLAY)
     MapperConfig(**out)
     return out
 

@@ -6,7 +6,8 @@ different worlds (full pipeline) and each correct pair's true transform perturbe
 10-90 deg, refined and validated as a search hypothesis would be (pair.judge).
 Prints a per-world table and writes out/bench/merge_sim.json.
 Usage: scripts/benchmarks/merge_sim.py [--worlds a,b] [--seeds 1,2] [--vehicles 3] [--laps 1] [--ground-s 0]
-       [--pose-delay-s 0] [--set name=value,...]
+       [--pose-delay-s 0] [--set name=value,...] [--mapper name=value,...]
+--mapper maps the flights with other MapperConfig settings (e.g. graze_deg=0); they are cached apart.
 """
 
 import argparse
@@ -19,8 +20,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _overrides import overrides  # noqa: E402
 
 from coopd.geometry import rigid, rotation_angle_deg, rotation_z  # noqa: E402
+from coopd.mapping import MapperConfig  # noqa: E402
 from coopd.merging.pair import judge, merge_prepared, prepare  # noqa: E402
 from coopd.merging.params import coopd_params  # noqa: E402
 from firmware_sim import simset  # noqa: E402
@@ -28,15 +33,6 @@ from firmware_sim import simset  # noqa: E402
 PERTURBATIONS = [(1.0, 0.0), (2.0, 0.0), (3.0, 0.0), (0.0, 10.0), (0.0, 30.0), (0.0, 90.0), (1.5, 20.0),
                  (2.5, 45.0)]
 """(shift m, yaw deg) applied to the true transform of every pair."""
-
-
-def with_overrides(params, text):
-    """params with 'name=value,...' applied (values parsed as the field's current type)."""
-    changes = {}
-    for item in filter(None, text.split(",")):
-        name, value = item.split("=")
-        changes[name] = type(getattr(params, name))(value)
-    return params.with_(**changes)
 
 
 def key(m):
@@ -74,11 +70,16 @@ def main():
     ap.add_argument("--tol-m", type=float, default=0.3)
     ap.add_argument("--tol-deg", type=float, default=3.0)
     ap.add_argument("--set", default="", help="parameter overrides, e.g. min_score=0.96,min_margin=0.1")
+    ap.add_argument("--mapper", default="", help="mapper settings of the flights, e.g. graze_deg=0")
     ap.add_argument("--out", default="out/bench/merge_sim.json")
     args = ap.parse_args()
-    params = with_overrides(coopd_params(), args.set)
+    try:
+        params = coopd_params().with_(**overrides(args.set, coopd_params()))
+        mapper = MapperConfig(**overrides(args.mapper, MapperConfig()))
+    except (ValueError, TypeError) as e:
+        ap.error(str(e))
     flights = [simset.flight_maps(w, int(s), args.vehicles, args.laps, args.ground_s,
-                                  args.pose_delay_s) for w in args.worlds.split(",")
+                                  args.pose_delay_s, mapper=mapper) for w in args.worlds.split(",")
                for s in args.seeds.split(",")]
     report = {"params": {k: getattr(params, k) for k in ("min_score", "min_agreement", "min_overlap",
                                                          "min_margin", "refine_iterations")},

@@ -32,6 +32,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _overrides  # noqa: E402
 
 from coopd.geometry import apply, invert, rigid, rotation_angle_deg, rotation_z  # noqa: E402
 from coopd.grid import transform_grid  # noqa: E402
@@ -60,15 +63,10 @@ PNG_MAX_CELLS = 3000
 
 def parse_value(text: str, default):
     """A --set value read as the type of the field's default (bool accepts true/false/1/0/yes/no)."""
-    if isinstance(default, bool):
-        low = text.strip().lower()
-        if low not in ("true", "false", "1", "0", "yes", "no"):
-            raise SystemExit(f"--set: {text!r} is not a boolean (true/false)")
-        return low in ("true", "1", "yes")
     try:
-        return type(default)(text) if default is not None else text
-    except ValueError:
-        raise SystemExit(f"--set: {text!r} is not a {type(default).__name__}") from None
+        return _overrides.parse_value(text, default)
+    except ValueError as e:
+        raise SystemExit(f"--set: {e}") from None
 
 
 def overrides(items: list[str], variants: list[str]) -> dict[str, dict]:

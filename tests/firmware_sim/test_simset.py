@@ -24,6 +24,8 @@ def test_flights_mapped_with_other_mapper_settings_are_cached_apart():
     assert simset.mapper_tag() == simset.mapper_tag(MapperConfig(threads=4))
     assert simset.mapper_tag() != simset.mapper_tag(MapperConfig(graze_deg=0.0))
     assert simset.mapper_tag() != simset.mapper_tag(MapperConfig(miss_decrement=14))
+    other = simset.cache_path("bookstore", 1, 3, 1, 0.0, 0.0, Path("c"), mapper=MapperConfig(graze_deg=0.0))
+    assert other != simset.cache_path("bookstore", 1, 3, 1, 0.0, 0.0, Path("c"))
 
 
 @pytest.mark.parametrize("rate", [0.0, -1.0, float("nan"), 5000.0])
