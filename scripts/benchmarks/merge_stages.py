@@ -11,7 +11,10 @@ how far the outputs differ:
   the query of a scipy cKDTree over the occupied cell centres (built once per map, its build time
   reported apart), for the refinement points of map B carried by the truth and moved by 0.1 m, at
   ICP's first (6 cells) and held (1.5 cells) radii;
-- FAST 3D and ICP: coopd's time alone (no peer: the figures the thesis bench's stages add up).
+- FAST 3D and ICP: coopd's time alone (no peer: the figures the thesis bench's stages add up);
+- the 5-point homography of RANSAC (§8.7) and Kabsch (§8.8, ICP's fit), by Jacobi eigenvectors
+  (merging/eigen.py, no LAPACK) against the same kernels with numba's np.linalg.svd (LAPACK through
+  SciPy, as coopd had them), on random samples of a rigid motion with 2 cm of noise.
 
 Usage: scripts/bench merge_stages [--repeat N] [--world NAME]. JSON in out/bench/merge_stages.json.
 """
@@ -22,18 +25,21 @@ import sys
 import time
 from pathlib import Path
 
+import numba as nb
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from coopd.geometry import apply, invert  # noqa: E402
+from coopd.geometry import apply, euler_to_matrix, invert, rigid  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
 from coopd.merging.fast3d import fast3d  # noqa: E402
+from coopd.merging.mtm import kabsch  # noqa: E402
 from coopd.merging.pair import _refine_points, prepare  # noqa: E402
 from coopd.merging.params import thesis_params  # noqa: E402
 from coopd.merging.preprocess import intensity, preprocess  # noqa: E402
+from coopd.merging.ransac import homography  # noqa: E402
 from coopd.merging.refine import icp  # noqa: E402
 from firmware_sim import exploration  # noqa: E402
 
@@ -71,6 +77,58 @@ def reference_preprocess(cells: np.ndarray, params) -> np.ndarray:
     m = [s // f for s in img.shape]
     img = img[: m[0] * f, : m[1] * f, : m[2] * f]
     return img.reshape(m[0], f, m[1], f, m[2], f).mean(axis=(1, 3, 5))
+
+
+@nb.njit(cache=False)
+def svd_homography(pb, pa):
+    """The 5-point homography by numba's np.linalg.svd of the 3n x 16 system (LAPACK)."""
+    n = pb.shape[0]
+    p = np.zeros((3 * n, 16))
+    for i in range(n):
+        x = np.array([pb[i, 0], pb[i, 1], pb[i, 2], 1.0])
+        for r in range(3):
+            for c in range(4):
+                p[3 * i + r, 4 * r + c] = -x[c]
+                p[3 * i + r, 12 + c] = x[c] * pa[i, r]
+    h = np.ascontiguousarray(np.linalg.svd(p)[2][-1]).reshape(4, 4).copy()
+    return h / h[3, 3]
+
+
+@nb.njit(cache=False)
+def svd_kabsch(src, dst):
+    """Kabsch by numba's np.linalg.svd of the cross-covariance, with the reflection fix (LAPACK)."""
+    cs = np.zeros(3)
+    cd = np.zeros(3)
+    for i in range(src.shape[0]):
+        cs += src[i]
+        cd += dst[i]
+    cs /= src.shape[0]
+    cd /= src.shape[0]
+    h = (src - cs).T @ (dst - cd)
+    u, _, vt = np.linalg.svd(h)
+    v = vt.T.copy()
+    r = v @ u.T
+    if np.linalg.det(r) < 0:
+        v[:, 2] *= -1.0
+        r = v @ u.T
+    t = np.eye(4)
+    t[:3, :3] = r
+    t[:3, 3] = cd - r @ cs
+    return t
+
+
+def small_fits(entry, repeat: int, count: int = 2000) -> None:
+    """Homographies of 5-point samples and Kabsch fits of 200 points: ours against LAPACK's SVD."""
+    rng = np.random.default_rng(0)
+    t = rigid(euler_to_matrix(0.1, -0.05, 2.0), [3.0, -2.0, 0.4])
+    for name, fn, peer_fn, n in (("homography (5 points)", homography, svd_homography, 5),
+                                 ("kabsch (200 points)", kabsch, svd_kabsch, 200)):
+        pbs = rng.uniform(-8, 8, (count, n, 3))
+        pairs = list(zip(pbs, pbs @ t[:3, :3].T + t[:3, 3] + rng.normal(0, 0.02, pbs.shape), strict=True))
+        ours_h, ours = cpu_best(lambda f=fn, ps=pairs: [f(pb, pa) for pb, pa in ps], repeat)
+        peer_h, peer = cpu_best(lambda f=peer_fn, ps=pairs: [f(pb, pa) for pb, pa in ps], repeat)
+        diff = max(float(np.abs(x - y).max() / np.abs(y).max()) for x, y in zip(ours_h, peer_h, strict=True))
+        entry(f"{name} x {count}", ours, peer, max_relative_difference=diff)
 
 
 def main() -> int:
@@ -119,6 +177,7 @@ def main() -> int:
     sides = normals if params.refine_facing else None  # as the pipeline refines
     _, ours = cpu_best(lambda: icp(pa.occupied, source, start, params.refine_iterations, sides), args.repeat)
     entry("icp (one hypothesis, 0.36 m off)", ours, points=len(source))
+    small_fits(entry, args.repeat)
     write_atomic(args.out, (json.dumps(report, indent=1) + "\n").encode())
     print(json.dumps(report, indent=1))
     return 0

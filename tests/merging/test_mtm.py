@@ -1,7 +1,8 @@
 import numpy as np
+import pytest
 
 from coopd.geometry import euler_to_matrix, rigid, rotation_angle_deg, rotation_z
-from coopd.merging.mtm import estimate, euler_eq33
+from coopd.merging.mtm import estimate, euler_eq33, kabsch
 
 
 def test_kabsch_recovers_a_known_transform_exactly():
@@ -37,3 +38,27 @@ def test_eq33_decomposition_round_trips():
     tx, ty, tz, roll, pitch, yaw = euler_eq33(t)
     assert np.allclose([tx, ty, tz], [1, 2, 3])
     assert np.allclose([roll, pitch, yaw], [0.05, -0.03, 1.2])
+
+
+def _svd_kabsch(src, dst):
+    """The textbook Kabsch (SVD of the cross-covariance, reflection fix) as the reference."""
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return rigid(r, cd - r @ cs)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_kabsch_equals_the_svd_form_on_noisy_points(seed):
+    rng = np.random.default_rng(seed)
+    t = rigid(euler_to_matrix(*rng.uniform(-np.pi, np.pi, 3)), rng.uniform(-10, 10, 3))
+    n = int(rng.integers(3, 200))
+    src = rng.normal(size=(n, 3)) * rng.uniform(0.1, 10, 3)
+    if seed % 2:
+        src[:, 2] = 0.0  # planar points: the SVD alone would offer a reflection
+    dst = src @ t[:3, :3].T + t[:3, 3] + rng.normal(0, 0.05, (n, 3))
+    est, ref = kabsch(src, dst), _svd_kabsch(src, dst)
+    assert rotation_angle_deg(est[:3, :3].T @ ref[:3, :3]) < 1e-6
+    assert np.abs(est[:3, 3] - ref[:3, 3]).max() < 1e-6
+    assert np.isclose(np.linalg.det(est[:3, :3]), 1.0)

@@ -73,3 +73,33 @@ def test_the_gate_keeps_a_true_transform_among_95_percent_outliers():
     best = filter_correspondences(pb, pa, 0.15, params)[0]
     assert rotation_angle_deg(best.transform[:3, :3].T @ t[:3, :3]) < 1.0
     assert best.inlier_count >= 0.9 * good.sum()
+
+
+def _svd_homography(pb, pa):
+    rows = []
+    for x, y in zip(np.c_[pb, np.ones(len(pb))], pa, strict=True):
+        for r in range(3):
+            row = np.zeros(16)
+            row[4 * r:4 * r + 4] = -x
+            row[12:] = x * y[r]
+            rows.append(row)
+    ref = np.linalg.svd(np.array(rows))[2][-1].reshape(4, 4)
+    return ref / ref[3, 3]
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.05])
+def test_homography_equals_the_last_right_singular_vector(noise):
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        pb = rng.uniform(-8, 8, (5, 3))
+        t = rigid(euler_to_matrix(*rng.uniform(-np.pi, np.pi, 3)), rng.uniform(-5, 5, 3))
+        pa = pb @ t[:3, :3].T + t[:3, 3] + rng.normal(0, noise, (5, 3))
+        ref = _svd_homography(pb, pa)
+        assert np.abs(homography(pb, pa) - ref).max() < 1e-9 * np.abs(ref).max()
+
+
+def test_homography_of_a_degenerate_sample_fits_nothing():
+    pb = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]], dtype=float)  # one line
+    h = homography(pb, pb + 1.0)
+    assert np.isfinite(h).all()
+    assert not (residuals(h, pb, pb + 1.0, True) < 0.1).all()

@@ -200,15 +200,17 @@ def _reference_icp(target, source, t, iterations):
     return t, frac
 
 
-def test_icp_steps_are_the_plain_algorithms_to_the_bit(near_pair):
-    """icp's compiled step (pairing, the unchanged-pairs test, the fit) gives exactly what the plain
-    loop gives, from a start 0.3 m and 4 degrees off."""
+def test_icp_steps_are_the_plain_algorithms(near_pair):
+    """icp's compiled step (pairing, the unchanged-pairs test, the fit) gives what the plain loop
+    gives, from a start 0.3 m and 4 degrees off: the same pairs at every step (the same inlier
+    fraction) and the same transform to 1e-12 (Kabsch compiled inside the step may round its last
+    bit differently from Kabsch called alone)."""
     a, b = near_pair.a, near_pair.b
     src = _occupied_m(b)[::7]
     start = rigid(rotation_z(np.radians(4.0)), [0.3, -0.2, 0.05]) @ near_pair.a_from_b
     t, frac = icp(_target(a), src, start, 28)
     t_ref, frac_ref = _reference_icp(_target(a), src, start, 28)
-    assert np.array_equal(t, t_ref) and frac == frac_ref
+    assert np.abs(t - t_ref).max() < 1e-12 and frac == frac_ref
     assert rotation_angle_deg(t[:3, :3].T @ near_pair.a_from_b[:3, :3]) < 1.0
 
 
