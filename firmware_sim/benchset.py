@@ -144,7 +144,11 @@ def _cast(solid, wres, origins_m, dirs, rot, trans, max_range, hits, misses, off
                     last = flat
 
 
-def random_frame(rng, start_xy, max_tilt_deg: float = 3.0, height_m: float = 1.5) -> np.ndarray:
+MAX_TILT_DEG = 3.0
+"""Roll and pitch of a drawn start frame are uniform within +-this: a drone started on uneven ground."""
+
+
+def random_frame(rng, start_xy, max_tilt_deg: float = MAX_TILT_DEG, height_m: float = 1.5) -> np.ndarray:
     """world_from_map of a drone's start frame (docs/method.md §1: its pose at the first odometry
     sample): at the start point, within 1 m of start_xy, any yaw, roll/pitch up to max_tilt_deg."""
     yaw = rng.uniform(0, 2 * np.pi)

@@ -97,12 +97,14 @@ def box_centres(world: World, rng, shift_m: float) -> tuple[np.ndarray, np.ndarr
 
 
 def world_pairs(world: World, seed: int, shift_m: float, variants=(), voxels: _Voxels | None = None,
-                **map_kw) -> list[WorldPair]:
-    """The base pair of two boxes shift_m apart, then one pair per B variant (same boxes and frames)."""
+                max_tilt_deg: float = benchset.MAX_TILT_DEG, **map_kw) -> list[WorldPair]:
+    """The base pair of two boxes shift_m apart, then one pair per B variant (same boxes and frames).
+    max_tilt_deg bounds the roll and pitch of each start frame (0: both drones started level)."""
     voxels = voxels or _Voxels(world)
     rng = np.random.default_rng(seed)
     ca, cb = box_centres(world, rng, shift_m)
-    frame_a, frame_b = benchset.random_frame(rng, ca), benchset.random_frame(rng, cb)
+    frame_a = benchset.random_frame(rng, ca, max_tilt_deg)
+    frame_b = benchset.random_frame(rng, cb, max_tilt_deg)
     ma = voxels.cast(frame_a, ca, rng, **map_kw)
     mb = voxels.cast(frame_b, cb, rng, **map_kw)
     base_overlap = benchset.known_overlap(ma, mb)

@@ -2,7 +2,7 @@
 
 Sets of pairs (firmware_sim/mergeset.py: two drones' ray-cast partial maps of 10 m boxes centred on
 the world's loop, 3-16 m apart (as far as the loop reaches), each map in its own start frame; the
-truth is exact):
+truth is exact; each start frame has any yaw and roll/pitch within +-3 deg, --max-tilt changes that):
 - fresh: --worlds generated worlds `gen:SEED` (all parameters drawn from the seed), --per-world pairs
   each; the world seeds are drawn from --seed, itself new on every run unless given, and printed;
 - reference: the six firmware_sim worlds (seed 0), --references pairs each, the same every run;
@@ -19,8 +19,8 @@ installed. The goal (fresh base pairs): >= 90 % of pairs with overlap >= 0.3 acc
 no accepted pair beyond 0.15 m, 0 wrong, more successes than Open3D in every band.
 
 Usage: scripts/bench merge [--seed S] [--worlds N] [--per-world K] [--references K] [--pairs N]
-       [--far N] [--robust res0.05,res0.2,lift1,flip0.1] [--variants coopd] [--no-open3d] [--out PATH]
-       [--cache DIR]
+       [--far N] [--robust res0.05,res0.2,lift1,flip0.1] [--variants coopd] [--max-tilt DEG]
+       [--no-open3d] [--out PATH] [--cache DIR]
 Tables and CPU seconds per merge (median, p90, max) on stderr, JSON on stdout and in
 out/bench/merge.json. The pairs depend only on the seed and
 the counts, so --cache DIR keeps them (one .npz per set of arguments) and a repeated run skips the
@@ -46,7 +46,7 @@ from coopd.io.atomic import write_atomic  # noqa: E402
 from coopd.merging.pair import merge_pair, prepare  # noqa: E402
 from coopd.merging.params import VARIANTS, coopd_params  # noqa: E402
 from coopd.merging.validation import agreement  # noqa: E402
-from firmware_sim.benchset import benchmark_pairs  # noqa: E402
+from firmware_sim.benchset import MAX_TILT_DEG, benchmark_pairs  # noqa: E402
 from firmware_sim.exploration import occupied_points  # noqa: E402
 from firmware_sim.mergeset import displacement, world_pairs  # noqa: E402
 from firmware_sim.worlds import GENERATORS, build_world  # noqa: E402
@@ -121,7 +121,7 @@ def build_pairs(args, seed: int) -> list[dict]:
     out = []
 
     def add(set_name, world, pair_seed, shift, variants):
-        for p in world_pairs(world, pair_seed, shift, variants):
+        for p in world_pairs(world, pair_seed, shift, variants, max_tilt_deg=args.max_tilt):
             out.append({"set": set_name, "world": p.world, "seed": p.seed, "variant": p.variant, "a": p.a,
                         "b": p.b, "a_from_b": p.a_from_b, "overlap": p.overlap, "shift_m": round(shift, 2)})
 
@@ -150,6 +150,8 @@ def cache_path(args, seed: int) -> Path:
     """Where --cache keeps the pairs these arguments draw."""
     drawn = (CACHE_VERSION, seed, args.worlds, args.per_world, args.references, args.pairs, args.far,
              args.robust)
+    if args.max_tilt != MAX_TILT_DEG:  # named only when changed: the caches of the default stay valid
+        drawn += (("max_tilt", args.max_tilt),)
     return args.cache / f"merge_pairs-{hashlib.sha1(repr(drawn).encode()).hexdigest()[:12]}.npz"
 
 
@@ -325,6 +327,8 @@ def parse_args(argv=None):
                     help="far-apart pairs of benchset's building (must be refused)")
     ap.add_argument("--robust", default=ROBUST, help="B variants merged for every fresh pair ('' for none)")
     ap.add_argument("--variants", default="coopd", help=f"coopd variants ({', '.join(VARIANTS)})")
+    ap.add_argument("--max-tilt", type=float, default=MAX_TILT_DEG,
+                    help="roll/pitch bound (deg) of the fresh and reference pairs' start frames (0: level)")
     ap.add_argument("--no-open3d", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("out/bench/merge.json"),
                     help="the JSON report; an existing directory gets merge.json in it")

@@ -54,3 +54,15 @@ def test_world_pairs_truths_are_exact_for_every_variant():
     assert again[1].b.same_cells(pairs[3].b) and np.array_equal(again[0].a_from_b, pairs[0].a_from_b)
     with pytest.raises(ValueError, match="unknown pair variant"):
         world_pairs(world, 3, 5.0, ["colour"])
+
+
+def test_level_start_frames_leave_only_yaw_between_the_maps():
+    """max_tilt_deg=0: both drones started level, so the truth turns about the vertical only; the
+    boxes and yaws are the ones the tilted draw gives (the same random stream)."""
+    world = build_world("gen:5:outdoor=0,size=24x16,clutter=1")
+    tilted = world_pairs(world, 3, 5.0)[0]
+    level = world_pairs(world, 3, 5.0, max_tilt_deg=0.0)[0]
+    assert np.allclose(level.a_from_b[2, :3], [0.0, 0.0, 1.0], atol=1e-12)
+    assert not np.allclose(tilted.a_from_b[2, :3], [0.0, 0.0, 1.0], atol=1e-3)
+    yaw = [math.atan2(p.a_from_b[1, 0], p.a_from_b[0, 0]) for p in (tilted, level)]
+    assert abs(yaw[0] - yaw[1]) < math.radians(6.0)  # within the tilts' share of the turn

@@ -89,3 +89,17 @@ def test_out_may_name_a_directory(tmp_path):
     """--out DIR writes DIR/merge.json (it used to fail after the whole run, renaming onto DIR)."""
     assert merge.parse_args(["--out", str(tmp_path)]).out == tmp_path / "merge.json"
     assert merge.parse_args(["--out", str(tmp_path / "x.json")]).out == tmp_path / "x.json"
+
+
+def test_level_frames_are_cached_apart_and_the_default_keeps_its_cache_name(tmp_path):
+    import argparse
+
+    args = argparse.Namespace(cache=tmp_path, worlds=6, per_world=3, references=1, pairs=0, far=4,
+                              robust=merge.ROBUST, max_tilt=merge.MAX_TILT_DEG)
+    default = merge.cache_path(args, 519809)
+    args.max_tilt = 0.0
+    level = merge.cache_path(args, 519809)
+    assert level != default
+    # the name the default had before --max-tilt existed: caches drawn then are still read
+    drawn = (merge.CACHE_VERSION, 519809, 6, 3, 1, 0, 4, merge.ROBUST)
+    assert default.name == f"merge_pairs-{merge.hashlib.sha1(repr(drawn).encode()).hexdigest()[:12]}.npz"
