@@ -8,7 +8,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-EMULATOR_OR_TOOLS = {"mujoco", "pillow", "firmware_sim", "foxglove-sdk"}
+EMULATOR_OR_TOOLS = {"mujoco", "pillow", "firmware_sim", "foxglove-sdk", "scipy"}
+"""Not on a drone: SciPy too, which only the emulator's scoring and the tests use (no kernel calls LAPACK)."""
 
 
 def names(requirements) -> set[str]:
@@ -19,7 +20,7 @@ def names(requirements) -> set[str]:
 def test_drone_dependencies_leave_out_the_emulator_and_the_tools():
     assert not names(PROJECT["dependencies"]) & EMULATOR_OR_TOOLS
     extras = PROJECT["optional-dependencies"]
-    assert names(extras["sim"]) == {"mujoco"} and names(extras["tools"]) == {"pillow"}
+    assert names(extras["sim"]) == {"mujoco", "scipy"} and names(extras["tools"]) == {"pillow"}
     assert names(extras["viewer"]) == {"foxglove-sdk"}
     assert "coopd[sim,tools]" in extras["test"]  # scripts/setup test: everything the tests use
     assert "coopd[viewer]" in extras["test"]

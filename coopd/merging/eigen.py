@@ -22,10 +22,16 @@ bounds the loop whatever the input."""
 def symmetric_eigen(a):
     """(values ascending, vectors as columns) of the symmetric matrix a; a itself is not changed.
     Each rotation zeroes one off-diagonal pair; sweeps stop when the off-diagonal mass is below
-    machine precision of the whole matrix."""
+    machine precision of the whole matrix. Tied values keep the order of their axes; a matrix with
+    a NaN or an infinity gives NaN throughout."""
     n = a.shape[0]
     m = a.copy()
     v = np.eye(n)
+    if not np.isfinite(m).all():
+        return np.full(n, np.nan), np.full((n, n), np.nan)
+    big = np.abs(m).max()
+    if big > 0.0:
+        m /= big  # squares below stay within float range whatever the input's scale
     scale = 0.0
     for p in range(n):
         for q in range(n):
@@ -35,7 +41,7 @@ def symmetric_eigen(a):
         for p in range(n - 1):
             for q in range(p + 1, n):
                 off += m[p, q] * m[p, q]
-        if not off > 1e-32 * scale:  # also stops on NaN
+        if not off > 1e-32 * scale:
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
@@ -62,6 +68,6 @@ def symmetric_eigen(a):
                     v[k, q] = s * vkp + c * vkq
     values = np.empty(n)
     for k in range(n):
-        values[k] = m[k, k]
-    order = np.argsort(values)
+        values[k] = m[k, k] * big
+    order = np.argsort(values, kind="mergesort")  # stable: tied values keep the input's order
     return values[order], v[:, order].copy()

@@ -42,7 +42,8 @@ def kabsch(src, dst):
                   [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
                   [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
                   [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz]])
-    q = symmetric_eigen(k)[1][:, 3]
+    values, vectors = symmetric_eigen(k)
+    q = vectors[:, np.argmax(values)]  # the first of tied maxima: no information gives no turn
     t = np.eye(4)
     t[:3, :3] = quaternion_matrix(q[0], q[1], q[2], q[3])
     for r in range(3):

@@ -39,8 +39,8 @@ class Hypothesis:
 def homography(pb, pa):
     """4x4 H with pa ~ H pb from a 5-point sample: the null vector of its 15 x 16 system (eq. 22),
     which the thesis takes as the SVD's last right singular vector. Gaussian elimination with full
-    pivoting finds the same vector without LAPACK (6.4x as fast: scripts/bench merge_stages). A
-    degenerate sample (rank below 15) gives all zeros, which no correspondence fits."""
+    pivoting finds the same vector without LAPACK. A degenerate sample (rank below 15, such as four
+    coplanar points) has no single null vector and gives all zeros, which no correspondence fits."""
     p = np.zeros((15, 16))
     for i in range(5):
         x = np.array([pb[i, 0], pb[i, 1], pb[i, 2], 1.0])
@@ -52,33 +52,33 @@ def homography(pb, pa):
     col = np.arange(16)
     scale = np.abs(p).max()
     for k in range(15):
-        pi, pj, best = k, k, 0.0
+        prow, pcol, best = k, k, 0.0
         for i in range(k, 15):
             for j in range(k, 16):
                 if abs(p[i, j]) > best:
-                    pi, pj, best = i, j, abs(p[i, j])
+                    prow, pcol, best = i, j, abs(p[i, j])
         if not best > 1e-12 * scale:
             return np.zeros((4, 4))
         for j in range(16):
-            p[k, j], p[pi, j] = p[pi, j], p[k, j]
+            p[k, j], p[prow, j] = p[prow, j], p[k, j]
         for i in range(15):
-            p[i, k], p[i, pj] = p[i, pj], p[i, k]
-        col[k], col[pj] = col[pj], col[k]
+            p[i, k], p[i, pcol] = p[i, pcol], p[i, k]
+        col[k], col[pcol] = col[pcol], col[k]
         for i in range(k + 1, 15):
             f = p[i, k] / p[k, k]
             if f != 0.0:
                 for j in range(k, 16):
                     p[i, j] -= f * p[k, j]
-    x = np.zeros(16)
-    x[15] = 1.0  # the column left without a pivot is the free unknown
+    sol = np.zeros(16)
+    sol[15] = 1.0  # the column left without a pivot is the free unknown
     for k in range(14, -1, -1):
         acc = 0.0
         for j in range(k + 1, 16):
-            acc += p[k, j] * x[j]
-        x[k] = -acc / p[k, k]
+            acc += p[k, j] * sol[j]
+        sol[k] = -acc / p[k, k]
     h = np.empty(16)
     for j in range(16):
-        h[col[j]] = x[j]
+        h[col[j]] = sol[j]
     h = h.reshape(4, 4) / np.sqrt(np.sum(h * h))  # unit length, as the singular vector
     if abs(h[3, 3]) > 1e-12:
         h /= h[3, 3]

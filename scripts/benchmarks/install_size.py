@@ -16,8 +16,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 GOAL_MB = 600
-NOT_ON_A_DRONE = {"mujoco", "glfw", "pyopengl", "pillow", "absl-py", "etils"}
-"""Distributions only the emulator (coopd[sim]) or the map tools (coopd[tools]) need."""
+NOT_ON_A_DRONE = {"mujoco", "glfw", "pyopengl", "pillow", "absl-py", "etils", "scipy"}
+"""Distributions only the emulator (coopd[sim]), the map tools (coopd[tools]) or the tests need."""
 
 MEASURE = r"""
 import json, os, sys

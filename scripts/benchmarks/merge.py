@@ -64,6 +64,14 @@ DISPLACEMENT_POINTS = 20000
 ROBUST = "res0.05,res0.2,lift1,flip0.1"
 
 
+def tilt_bound(text: str) -> float:
+    """--max-tilt's value: degrees in 0..30 (0.0 and -0.0 alike)."""
+    value = float(text)
+    if not 0.0 <= value <= 30.0:
+        raise argparse.ArgumentTypeError(f"{text} is not a tilt bound in 0..30 degrees")
+    return abs(value)
+
+
 def band_name(lo: float, hi: float) -> str:
     """'0.30-0.50', or '>=0.50' for the open top band."""
     return f">={lo:.2f}" if hi > 1.0 else f"{lo:.2f}-{hi:.2f}"
@@ -327,7 +335,7 @@ def parse_args(argv=None):
                     help="far-apart pairs of benchset's building (must be refused)")
     ap.add_argument("--robust", default=ROBUST, help="B variants merged for every fresh pair ('' for none)")
     ap.add_argument("--variants", default="coopd", help=f"coopd variants ({', '.join(VARIANTS)})")
-    ap.add_argument("--max-tilt", type=float, default=MAX_TILT_DEG,
+    ap.add_argument("--max-tilt", type=tilt_bound, default=MAX_TILT_DEG,
                     help="roll/pitch bound (deg) of the fresh and reference pairs' start frames (0: level)")
     ap.add_argument("--no-open3d", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("out/bench/merge.json"),

@@ -96,7 +96,8 @@ def svd_homography(pb, pa):
 
 @nb.njit(cache=False)
 def svd_kabsch(src, dst):
-    """Kabsch by numba's np.linalg.svd of the cross-covariance, with the reflection fix (LAPACK)."""
+    """Kabsch as coopd had it: the cross-covariance in loops, numba's np.linalg.svd (LAPACK) and the
+    reflection fix."""
     cs = np.zeros(3)
     cd = np.zeros(3)
     for i in range(src.shape[0]):
@@ -104,7 +105,11 @@ def svd_kabsch(src, dst):
         cd += dst[i]
     cs /= src.shape[0]
     cd /= src.shape[0]
-    h = (src - cs).T @ (dst - cd)
+    h = np.zeros((3, 3))
+    for i in range(src.shape[0]):
+        for r in range(3):
+            for c in range(3):
+                h[r, c] += (src[i, r] - cs[r]) * (dst[i, c] - cd[c])
     u, _, vt = np.linalg.svd(h)
     v = vt.T.copy()
     r = v @ u.T

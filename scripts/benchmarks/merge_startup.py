@@ -76,23 +76,23 @@ def main() -> int:
     code = CHILD.replace("ROOT", repr("" if a.python else str(ROOT))) \
         .replace("PATH_A", repr(str(PAIR / "early_1.cmap"))) \
         .replace("PATH_B", repr(str(PAIR / "early_2.cmap")))
-    kernel_dir = tempfile.TemporaryDirectory()
-    Path(kernel_dir.name, "trivial_kernel.py").write_text(TRIVIAL_KERNEL)
-    floor_code = f"import sys; sys.path.insert(0, {kernel_dir.name!r}); {NUMBA_FLOOR}"
-    run(python, code)  # fill the kernel caches if there are none yet: measured runs load, never compile
-    run(python, floor_code)
     runs, bare, peer, floor = [], [], [], []
-    for _ in range(a.repeat):
-        bare.append(run(python, "pass")[0])
-        peer.append(run(python, "import numpy")[0])
-        floor.append(bare[-1] + float(run(python, floor_code)[1]))
-        wall, out = run(python, code)
-        r = json.loads(out.splitlines()[-1])
-        r["process_s"] = wall
-        r["ready_s"] = bare[-1] + r["import_s"] + max(0.0, r["first_s"] - r["warm_s"])
-        kernels_cpu = max(0.0, r["first_cpu_s"] - r["warm_cpu_s"])
-        r["ready_cpu_s"] = r["started_cpu_s"] + r["import_cpu_s"] + kernels_cpu
-        runs.append(r)
+    with tempfile.TemporaryDirectory() as kernel_dir:
+        Path(kernel_dir, "trivial_kernel.py").write_text(TRIVIAL_KERNEL)
+        floor_code = f"import sys; sys.path.insert(0, {kernel_dir!r}); {NUMBA_FLOOR}"
+        run(python, code)  # fill the kernel caches if there are none yet: measured runs load, never compile
+        run(python, floor_code)
+        for _ in range(a.repeat):
+            bare.append(run(python, "pass")[0])
+            peer.append(run(python, "import numpy")[0])
+            floor.append(bare[-1] + float(run(python, floor_code)[1]))
+            wall, out = run(python, code)
+            r = json.loads(out.splitlines()[-1])
+            r["process_s"] = wall
+            r["ready_s"] = bare[-1] + r["import_s"] + max(0.0, r["first_s"] - r["warm_s"])
+            kernels_cpu = max(0.0, r["first_cpu_s"] - r["warm_cpu_s"])
+            r["ready_cpu_s"] = r["started_cpu_s"] + r["import_cpu_s"] + kernels_cpu
+            runs.append(r)
 
     def med(key):
         return round(statistics.median(r[key] for r in runs), 3)
@@ -112,7 +112,6 @@ def main() -> int:
         "warm_merge_s": med("warm_s"), "warm_merge_cpu_s": med("warm_cpu_s"),
         "whole_process_s": med("process_s"),
     }
-    kernel_dir.cleanup()
     out = ROOT / "out" / "bench"
     out.mkdir(parents=True, exist_ok=True)
     (out / "merge_startup.json").write_text(json.dumps(result, indent=1) + "\n")

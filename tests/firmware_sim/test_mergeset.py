@@ -65,4 +65,5 @@ def test_level_start_frames_leave_only_yaw_between_the_maps():
     assert np.allclose(level.a_from_b[2, :3], [0.0, 0.0, 1.0], atol=1e-12)
     assert not np.allclose(tilted.a_from_b[2, :3], [0.0, 0.0, 1.0], atol=1e-3)
     yaw = [math.atan2(p.a_from_b[1, 0], p.a_from_b[0, 0]) for p in (tilted, level)]
-    assert abs(yaw[0] - yaw[1]) < math.radians(6.0)  # within the tilts' share of the turn
+    turn = math.degrees(math.remainder(yaw[0] - yaw[1], 2 * math.pi))
+    assert abs(turn) < 0.5, turn  # the same drawn yaws; 3 degrees of tilt move the read yaw a little

@@ -43,11 +43,22 @@ def test_eigen_of_repeated_values_and_diagonal_input():
     assert np.allclose(values, 5.0)
 
 
-def test_eigen_stops_on_nan():
-    a = np.eye(4)
-    a[1, 2] = a[2, 1] = np.nan
-    values, _ = symmetric_eigen(a)  # returns (NaN), does not spin
-    assert values.shape == (4,)
+def test_eigen_of_a_matrix_with_nan_or_inf_is_nan():
+    for bad in (np.nan, np.inf):
+        a = np.eye(4)
+        a[1, 2] = a[2, 1] = bad
+        values, vectors = symmetric_eigen(a)
+        assert np.isnan(values).all() and np.isnan(vectors).all()
+
+
+@pytest.mark.parametrize("scale", [1e-200, 1e-100, 1e100, 1e200])
+def test_eigen_at_any_scale(scale):
+    """Squares of entries this large or small would leave float range: the solver works scaled."""
+    rng = np.random.default_rng(3)
+    a = _symmetric(4, rng)
+    values, vectors = symmetric_eigen(a * scale)
+    assert np.allclose(values / scale, np.linalg.eigh(a)[0], rtol=0, atol=1e-12)
+    assert np.abs(a @ vectors - vectors * (values / scale)).max() <= 1e-12
 
 
 WITHOUT_SCIPY = """

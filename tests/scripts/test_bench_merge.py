@@ -103,3 +103,7 @@ def test_level_frames_are_cached_apart_and_the_default_keeps_its_cache_name(tmp_
     # the name the default had before --max-tilt existed: caches drawn then are still read
     drawn = (merge.CACHE_VERSION, 519809, 6, 3, 1, 0, 4, merge.ROBUST)
     assert default.name == f"merge_pairs-{merge.hashlib.sha1(repr(drawn).encode()).hexdigest()[:12]}.npz"
+    assert merge.tilt_bound("-0.0") == 0.0 and merge.tilt_bound("2.5") == 2.5
+    for bad in ("-1", "31", "nan"):
+        with pytest.raises(merge.argparse.ArgumentTypeError):
+            merge.tilt_bound(bad)
