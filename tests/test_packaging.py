@@ -59,3 +59,11 @@ def test_product_package_never_imports_the_emulator_and_tools_only_on_use():
         on_use = {"mujoco", "PIL", "foxglove"}
         problems += [f"{name} imports {m} when it loads" for m in imported(at_load(tree)) & on_use]
     assert problems == []
+
+
+def test_the_demo_installs_what_it_runs():
+    """scripts/demo sets up its own venv from a fresh clone: it flies firmware_sim (coopd[sim]) and
+    writes PNG views (coopd[tools]), which the drone install leaves out."""
+    setup = [line.split("#")[0].split() for line in (ROOT / "scripts" / "demo").read_text().splitlines()
+             if line.startswith("scripts/setup")]
+    assert len(setup) == 1 and {"sim", "tools"} <= set(setup[0][1:]), setup
