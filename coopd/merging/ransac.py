@@ -36,19 +36,28 @@ class Hypothesis:
 
 
 @nb.njit(**_JIT)
-def homography(pb, pa):
-    """4x4 H with pa ~ H pb from a 5-point sample: the null vector of its 15 x 16 system (eq. 22),
-    which the thesis takes as the SVD's last right singular vector. Gaussian elimination with full
-    pivoting finds the same vector without LAPACK. A degenerate sample (rank below 15, such as four
-    coplanar points) has no single null vector and gives all zeros, which no correspondence fits."""
-    p = np.zeros((15, 16))
-    for i in range(5):
+def homography_system(pb, pa):
+    """The 3n x 16 linear system P h = 0 of eq. 22: three rows per correspondence pa ~ H pb, with h
+    the 4x4 H row by row."""
+    n = pb.shape[0]
+    p = np.zeros((3 * n, 16))
+    for i in range(n):
         x = np.array([pb[i, 0], pb[i, 1], pb[i, 2], 1.0])
         for r in range(3):
             row = 3 * i + r
             for c in range(4):
                 p[row, 4 * r + c] = -x[c]
                 p[row, 12 + c] = x[c] * pa[i, r]
+    return p
+
+
+@nb.njit(**_JIT)
+def homography(pb, pa):
+    """4x4 H with pa ~ H pb from a 5-point sample: the null vector of its 15 x 16 system (eq. 22),
+    which the thesis takes as the SVD's last right singular vector. Gaussian elimination with full
+    pivoting finds the same vector without LAPACK. A degenerate sample (rank below 15, such as four
+    coplanar points) has no single null vector and gives all zeros, which no correspondence fits."""
+    p = homography_system(pb[:5], pa[:5])
     col = np.arange(16)
     scale = np.abs(p).max()
     for k in range(15):

@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from coopd.geometry import rotation_angle_deg  # noqa: E402
+from coopd.geometry import apply, rotation_angle_deg  # noqa: E402
 from coopd.grid import OccupancyGrid  # noqa: E402
 from coopd.io.atomic import write_atomic  # noqa: E402
 from coopd.merging.pair import merge_pair, prepare  # noqa: E402
@@ -78,15 +78,32 @@ def band_name(lo: float, hi: float) -> str:
 
 
 def errors(estimate: np.ndarray, truth: np.ndarray, b) -> dict:
-    """Rotation error, translation error at B's origin, mean and max displacement of B's occupied cells."""
+    """Rotation error (and its tilt: the angle between the two transforms' vertical axes), translation
+    error at B's origin, mean and max displacement of B's occupied cells, and their mean offset split
+    into its horizontal and vertical parts."""
     points = occupied_points(b)
     points = points[:: max(1, len(points) // DISPLACEMENT_POINTS)]
     mean, worst = displacement(estimate, truth, points)
-    rot = rotation_angle_deg(estimate[:3, :3].T @ truth[:3, :3])
+    turn = estimate[:3, :3].T @ truth[:3, :3]
+    rot = rotation_angle_deg(turn)
+    tilt = float(np.degrees(np.arccos(np.clip(turn[2, 2], -1.0, 1.0))))
     trans = float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
-    return {"rot_err_deg": round(rot, 3), "trans_err_m": round(trans, 3),
+    offset = (apply(estimate, points) - apply(truth, points)).mean(axis=0) if len(points) else np.zeros(3)
+    return {"rot_err_deg": round(rot, 3), "tilt_err_deg": round(tilt, 3), "trans_err_m": round(trans, 3),
             "mean_disp_m": round(mean, 4), "max_disp_m": round(worst, 4),
+            "offset_h_m": round(float(np.hypot(offset[0], offset[1])), 4),
+            "offset_v_m": round(float(abs(offset[2])), 4),
             "correct": bool(rot < MAX_ROT_DEG and mean < MAX_DISPLACEMENT_M)}
+
+
+def error_split(rows: list[dict]) -> dict | None:
+    """Ranges of the error's parts over coopd's right merges of fresh base pairs at overlap >= 0.3."""
+    ok = [r for r in rows if r["method"] == "coopd" and r["set"] == "fresh" and r["variant"] == "base"
+          and r["overlap"] >= 0.3 and r["accepted"] and r["correct"]]
+    if not ok:
+        return None
+    return {k: [min(r[k] for r in ok), max(r[k] for r in ok)]
+            for k in ("tilt_err_deg", "rot_err_deg", "offset_h_m", "offset_v_m")} | {"merges": len(ok)}
 
 
 def open3d_register(a, b, voxel=0.3):
@@ -384,12 +401,19 @@ def main(argv=None) -> dict:
     report = {"seed": seed, "command": command,
               "fresh_worlds": worlds, "pairs": len(pairs), "generation_seconds": round(gen_s, 1),
               "open3d": open3d, "goal": goal(summary), "cpu_seconds_per_merge": cpu_summary(rows),
-              "summary": summary, "rows": rows}
+              "error_split": error_split(rows), "summary": summary, "rows": rows}
     print(table(summary), file=sys.stderr)
     print("goal (fresh worlds, coopd):", json.dumps(report["goal"]), file=sys.stderr)
     for method, cpu in report["cpu_seconds_per_merge"].items():
         print(f"CPU s per merge, {method}: median {cpu['median']:.3f}, p90 {cpu['p90']:.3f}, "
               f"max {cpu['max']:.3f} ({cpu['merges']} merges)", file=sys.stderr)
+    if report["error_split"]:
+        e = report["error_split"]
+        print(f"error of the {e['merges']} right fresh base merges at overlap >= 0.3: tilt "
+              f"{e['tilt_err_deg'][0]:.2f}-{e['tilt_err_deg'][1]:.2f} deg of rotation "
+              f"{e['rot_err_deg'][0]:.2f}-{e['rot_err_deg'][1]:.2f} deg; mean offset horizontal "
+              f"{e['offset_h_m'][0]:.3f}-{e['offset_h_m'][1]:.3f} m, vertical "
+              f"{e['offset_v_m'][0]:.3f}-{e['offset_v_m'][1]:.3f} m", file=sys.stderr)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(args.out, json.dumps(report, indent=1).encode())
     print(json.dumps({k: v for k, v in report.items() if k != "rows"}, indent=1))

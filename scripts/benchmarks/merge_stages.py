@@ -39,7 +39,7 @@ from coopd.merging.mtm import kabsch  # noqa: E402
 from coopd.merging.pair import _refine_points, prepare  # noqa: E402
 from coopd.merging.params import thesis_params  # noqa: E402
 from coopd.merging.preprocess import intensity, preprocess  # noqa: E402
-from coopd.merging.ransac import homography  # noqa: E402
+from coopd.merging.ransac import homography, homography_system  # noqa: E402
 from coopd.merging.refine import icp  # noqa: E402
 from firmware_sim import exploration  # noqa: E402
 
@@ -82,15 +82,7 @@ def reference_preprocess(cells: np.ndarray, params) -> np.ndarray:
 @nb.njit(cache=False)
 def svd_homography(pb, pa):
     """The 5-point homography by numba's np.linalg.svd of the 3n x 16 system (LAPACK)."""
-    n = pb.shape[0]
-    p = np.zeros((3 * n, 16))
-    for i in range(n):
-        x = np.array([pb[i, 0], pb[i, 1], pb[i, 2], 1.0])
-        for r in range(3):
-            for c in range(4):
-                p[3 * i + r, 4 * r + c] = -x[c]
-                p[3 * i + r, 12 + c] = x[c] * pa[i, r]
-    h = np.ascontiguousarray(np.linalg.svd(p)[2][-1]).reshape(4, 4).copy()
+    h = np.ascontiguousarray(np.linalg.svd(homography_system(pb, pa))[2][-1]).reshape(4, 4).copy()
     return h / h[3, 3]
 
 

@@ -3,7 +3,14 @@ import pytest
 
 from coopd.geometry import euler_to_matrix, rigid, rotation_angle_deg, rotation_z
 from coopd.merging.params import MergeParams
-from coopd.merging.ransac import MODELS, filter_correspondences, homography, ransac, residuals
+from coopd.merging.ransac import (
+    MODELS,
+    filter_correspondences,
+    homography,
+    homography_system,
+    ransac,
+    residuals,
+)
 
 
 def _data(t, n=60, outliers=0.5, seed=0):
@@ -76,14 +83,7 @@ def test_the_gate_keeps_a_true_transform_among_95_percent_outliers():
 
 
 def _svd_homography(pb, pa):
-    rows = []
-    for x, y in zip(np.c_[pb, np.ones(len(pb))], pa, strict=True):
-        for r in range(3):
-            row = np.zeros(16)
-            row[4 * r:4 * r + 4] = -x
-            row[12:] = x * y[r]
-            rows.append(row)
-    return np.linalg.svd(np.array(rows))[2][-1]
+    return np.linalg.svd(homography_system(pb, pa))[2][-1]
 
 
 def _unit(h):

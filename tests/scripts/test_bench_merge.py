@@ -107,3 +107,24 @@ def test_level_frames_are_cached_apart_and_the_default_keeps_its_cache_name(tmp_
     for bad in ("-1", "31", "nan"):
         with pytest.raises(merge.argparse.ArgumentTypeError):
             merge.tilt_bound(bad)
+
+
+def test_errors_split_tilt_and_the_mean_offset():
+    import numpy as np
+
+    from coopd.geometry import euler_to_matrix, rigid
+    from coopd.grid import OccupancyGrid
+
+    b = OccupancyGrid.empty((20, 20, 10), 0.1)
+    b.cells[2:18, 2:18, 1] = 90
+    truth = rigid(euler_to_matrix(0.0, 0.0, 0.7), [1.0, 2.0, 0.0])
+    shifted = merge.errors(rigid(np.eye(3), [0.03, 0.04, -0.05]) @ truth, truth, b)
+    assert shifted["tilt_err_deg"] == 0.0 and shifted["rot_err_deg"] == 0.0
+    assert shifted["offset_h_m"] == 0.05 and shifted["offset_v_m"] == 0.05
+    tilted = merge.errors(truth @ rigid(euler_to_matrix(np.radians(1.0), 0.0, 0.0)), truth, b)
+    assert abs(tilted["tilt_err_deg"] - 1.0) < 1e-6 and abs(tilted["rot_err_deg"] - 1.0) < 1e-6
+    rows = [{"method": "coopd", "set": "fresh", "variant": "base", "overlap": 0.5, "accepted": True,
+             "correct": True, **e} for e in (shifted, tilted)]
+    split = merge.error_split(rows)
+    assert split["merges"] == 2 and split["tilt_err_deg"] == [0.0, 1.0]
+    assert merge.error_split(rows[:0]) is None
